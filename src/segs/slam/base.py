@@ -1,0 +1,102 @@
+"""The frontend interface: what any tracker (ground truth or ORB-SLAM style) gives the mapper.
+
+Poses are world-to-camera 4x4 float64 matrices (w2c). Nothing here knows about training.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from segs.data.frame import Frame
+
+
+@dataclass
+class FrameResult:
+    """Outcome of tracking one frame: w2c [4,4] or None when lost; kf_id when it became a keyframe."""
+
+    frame_index: int
+    w2c: np.ndarray | None
+    kf_id: int | None = None
+
+    @property
+    def tracked(self) -> bool:
+        return self.w2c is not None
+
+
+def _empty_points() -> np.ndarray:
+    return np.zeros((0, 3), np.float64)
+
+
+@dataclass
+class MapUpdate:
+    """Everything the mapper must learn since the previous poll.
+
+    new_keyframes: kf ids created since the last poll (their frame: Frontend.keyframe_frames()).
+    poses:         kf_id -> w2c [4,4] for new keyframes and keyframes whose pose was refined.
+    points:        [M,3] float64 world positions of map points that appear for the first time.
+    colors:        [M,3] float32 in [0,1] (image colour at the creating keyframe's keypoint).
+    point_kf:      [M] int64 kf_id of the keyframe that created each point.
+    corrections:   kf_id -> world-to-world similarity [4,4] (c2w_new @ w2c_old) applied by a
+                   loop closure; the structure created by that keyframe moves with it.
+    """
+
+    new_keyframes: list[int] = field(default_factory=list)
+    poses: dict[int, np.ndarray] = field(default_factory=dict)
+    points: np.ndarray = field(default_factory=_empty_points)
+    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    point_kf: np.ndarray = field(default_factory=lambda: np.zeros((0,), np.int64))
+    corrections: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def is_empty(self) -> bool:
+        return not (self.new_keyframes or self.poses or len(self.points) or self.corrections)
+
+    def merge(self, other: "MapUpdate") -> "MapUpdate":
+        """Return self followed by other (later poses and corrections win / compose)."""
+        corrections = dict(self.corrections)
+        for k, t in other.corrections.items():
+            corrections[k] = t @ corrections[k] if k in corrections else t
+        return MapUpdate(
+            new_keyframes=self.new_keyframes + [k for k in other.new_keyframes if k not in self.new_keyframes],
+            poses={**self.poses, **other.poses},
+            points=np.concatenate([self.points, other.points]),
+            colors=np.concatenate([self.colors, other.colors]),
+            point_kf=np.concatenate([self.point_kf, other.point_kf]),
+            corrections=corrections,
+        )
+
+
+class Frontend(abc.ABC):
+    """A tracker that turns a frame stream into keyframes, poses and structure."""
+
+    @abc.abstractmethod
+    def process(self, frame: Frame) -> FrameResult:
+        """Track one frame (in single-thread mode this also runs local mapping)."""
+
+    @abc.abstractmethod
+    def poll(self) -> MapUpdate:
+        """Everything new since the previous poll (empty MapUpdate if nothing)."""
+
+    @abc.abstractmethod
+    def finish(self) -> MapUpdate:
+        """End of the sequence: final optimisation; returns the resulting update."""
+
+    @abc.abstractmethod
+    def trajectory(self) -> dict[int, np.ndarray]:
+        """frame index -> estimated w2c [4,4] of every tracked frame, with the latest keyframe poses."""
+
+    @abc.abstractmethod
+    def lost_frames(self) -> list[int]:
+        """Frame indices that could not be tracked (never invented poses)."""
+
+    @abc.abstractmethod
+    def keyframe_frames(self) -> dict[int, int]:
+        """kf_id -> frame index of every keyframe still in the map."""
+
+    def state_dict(self) -> dict:
+        """Serializable state for checkpoints (override to support resume)."""
+        raise NotImplementedError(f"{type(self).__name__} does not support checkpointing")
+
+    def load_state_dict(self, state: dict) -> None:
+        raise NotImplementedError(f"{type(self).__name__} does not support checkpointing")
