@@ -1,0 +1,85 @@
+"""Trajectory files and the absolute trajectory error (ATE), computed with evo.
+
+Estimated poses come as world-to-camera matrices keyed by frame index (what the frontends
+produce); ground truth comes as camera-to-world matrices per frame (what the readers produce).
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+from evo.core import metrics, sync
+from evo.core.trajectory import PoseTrajectory3D
+from evo.tools import file_interface
+
+ALIGNMENTS = ("se3", "sim3", "none")
+
+
+def _trajectory(timestamps: np.ndarray, c2w: np.ndarray) -> PoseTrajectory3D:
+    """timestamps [M] seconds, c2w [M,4,4] -> evo trajectory."""
+    return PoseTrajectory3D(poses_se3=[np.asarray(p, np.float64) for p in c2w], timestamps=np.asarray(timestamps, np.float64))
+
+
+def estimated_c2w(trajectory: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Frame-index-keyed w2c dict -> (frame indices [M] sorted, c2w [M,4,4])."""
+    idx = np.array(sorted(trajectory), dtype=np.int64)
+    c2w = np.stack([np.linalg.inv(trajectory[i]) for i in idx]) if len(idx) else np.zeros((0, 4, 4))
+    return idx, c2w
+
+
+def write_tum(path: str | Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
+    """Write camera-to-world poses [M,4,4] at timestamps [M] in TUM format (tx ty tz qx qy qz qw)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    file_interface.write_tum_trajectory_file(str(tmp), _trajectory(timestamps, c2w))
+    tmp.replace(path)
+
+
+def ate(
+    timestamps: np.ndarray,
+    trajectory: dict[int, np.ndarray],
+    gt_c2w: np.ndarray | None,
+    align: str = "se3",
+    max_diff: float = 0.1,
+) -> dict:
+    """ATE RMSE (metres) of estimated poses against ground truth, aligned with evo.
+
+    timestamps: [N] seconds of every frame of the sequence; trajectory: frame index -> w2c [4,4]
+    of the tracked frames; gt_c2w: [N,4,4] ground truth (NaN rows where unknown) or None.
+    align: "se3" (RGB-D, stereo), "sim3" (monocular: scale corrected) or "none".
+    Returns {"rmse", "mean", "median", "max", "pairs", "align", "scale"}, or {"rmse": None, ...}
+    with a "reason" when it cannot be computed (no ground truth, fewer than 3 pairs).
+    """
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
+    empty = {"rmse": None, "mean": None, "median": None, "max": None, "pairs": 0, "align": align, "scale": None}
+    if gt_c2w is None:
+        return {**empty, "reason": "no ground truth"}
+    idx, est = estimated_c2w(trajectory)
+    ok = np.isfinite(gt_c2w.reshape(len(gt_c2w), -1)).all(axis=1)
+    gt_idx = np.nonzero(ok)[0]
+    if len(idx) < 3 or len(gt_idx) < 3:
+        return {**empty, "reason": "fewer than 3 tracked frames with ground truth"}
+    ref = _trajectory(timestamps[gt_idx], gt_c2w[gt_idx])
+    traj = _trajectory(timestamps[idx], est)
+    ref, traj = sync.associate_trajectories(ref, traj, max_diff=max_diff)
+    if ref.num_poses < 3:
+        return {**empty, "reason": "fewer than 3 associated poses"}
+    traj = copy.deepcopy(traj)
+    scale = 1.0
+    if align != "none":
+        _, _, scale = traj.align(ref, correct_scale=(align == "sim3"))
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, traj))
+    s = ape.get_all_statistics()
+    return {
+        "rmse": float(s["rmse"]),
+        "mean": float(s["mean"]),
+        "median": float(s["median"]),
+        "max": float(s["max"]),
+        "pairs": int(ref.num_poses),
+        "align": align,
+        "scale": float(scale),
+    }
