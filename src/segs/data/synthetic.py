@@ -151,7 +151,7 @@ class SyntheticSequence(Sequence):
         _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseline)
         self.sensor, self.exposure_change, self.dropped = sensor, float(exposure_change), 0
         self.name = f"synthetic_{trajectory}_{texture}"
-        fx = (width / 2.0) / np.tan(np.radians(fov_deg) / 2.0)
+        fx = float((width / 2.0) / np.tan(np.radians(fov_deg) / 2.0))
         self.camera = Camera(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, width, height,
                              float(baseline) if sensor == "stereo" else None)
         self.timestamps = np.arange(n_frames, dtype=np.float64) / FPS
