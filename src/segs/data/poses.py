@@ -12,6 +12,7 @@ import numpy as np
 from segs.errors import DataError
 
 QUAT_TOLERANCE = 1e-3  # accepted | |q| - 1 |; larger means a corrupt file, not rounding
+RIGID_TOLERANCE = 1e-3  # accepted deviation of R R^T from I and of the last row from 0 0 0 1
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -54,14 +55,15 @@ def check_quaternions(q: np.ndarray, path: Path, linenos: list[int]) -> None:
         raise DataError(f"{path}:{linenos[bad[0]]}: quaternion norm {norm:.6g}, expected a unit quaternion")
 
 
-def check_rigid(poses: np.ndarray, path: Path, linenos: list[int], tol: float = 1e-3) -> None:
-    """DataError naming the line of the first [4,4] pose that is not a rigid transform."""
+def check_rigid(poses: np.ndarray, path: Path, linenos: list[int] | None = None, what: str = "") -> None:
+    """DataError naming the file (and line, or `what`) of the first [4,4] pose that is not rigid."""
     rot = poses[:, :3, :3]
     ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
     bottom = np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1)
-    bad = np.flatnonzero((ortho > tol) | (bottom > tol) | (np.linalg.det(rot) < 0))
+    bad = np.flatnonzero((ortho > RIGID_TOLERANCE) | (bottom > RIGID_TOLERANCE) | (np.linalg.det(rot) < 0))
     if len(bad):
-        raise DataError(f"{path}:{linenos[bad[0]]}: expected a rigid 4x4 transform (orthonormal rotation, last row 0 0 0 1)")
+        where = f"{path}:{linenos[bad[0]]}" if linenos else f"{path}: {what}".rstrip()
+        raise DataError(f"{where}: expected a rigid 4x4 transform (orthonormal rotation, last row 0 0 0 1)")
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
