@@ -1,0 +1,181 @@
+"""The one bridge between the SLAM frontend (segs.slam) and the mapper (segs.modules).
+
+Before each training step the bridge feeds the frames that became available to the frontend,
+polls its MapUpdate and pushes keyframes, refreshed poses, new points and loop corrections into
+the module through the module's bridge interface. Neither side imports the other.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+
+import lightning as L
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from segs.data.frame import Frame, Sequence
+from segs.modules.keyframes import Keyframe, to_uint8
+from segs.slam.base import Frontend, MapUpdate
+
+log = logging.getLogger(__name__)
+
+
+class SlamBridge(L.Callback):
+    """Plays the SLAM thread beside training.
+
+    frames_per_step: frames fed to the frontend per training step once mapping runs.
+    min_initial_keyframes: mapping starts when the frontend has made this many keyframes.
+    holdout_every: frames with index % n == 0 never become training views (0 = off).
+    """
+
+    def __init__(self, sequence: Sequence, frontend: Frontend, frames_per_step: float = 0.1,
+                 min_initial_keyframes: int = 10, holdout_every: int = 0, progress: bool = True,
+                 cache_frames: int = 64):  # fmt: skip
+        self.sequence, self.frontend = sequence, frontend
+        self.frames_per_step, self.min_initial_keyframes = frames_per_step, min_initial_keyframes
+        self.holdout_every, self.progress = holdout_every, progress
+        self.cursor = 0  # next frame index to feed
+        self.credit = 0.0
+        self.finished = False
+        self.trained_frames: dict[int, int] = {}  # kf_id -> frame index of views the module trains on
+        self.held_out_keyframes: list[int] = []
+        self._cache: OrderedDict[int, Frame] = OrderedDict()
+        self._cache_size = cache_frames
+        self._restored = False
+        self.process_seconds = 0.0
+        self.processed = 0
+
+    # -- Lightning hooks ------------------------------------------------------------------------
+    def on_train_start(self, trainer, pl_module) -> None:
+        if self._restored:
+            return
+        bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
+        update = MapUpdate()
+        while self.cursor < len(self.sequence) and len(self.frontend.keyframe_frames()) < self.min_initial_keyframes:
+            self._feed_one()
+            update = update.merge(self.frontend.poll())
+            bar.update(1)
+        bar.close()
+        if self.cursor >= len(self.sequence):
+            update = update.merge(self._finish())
+        self._push(update, pl_module)
+        if len(pl_module.store) == 0:
+            raise RuntimeError("the frontend produced no training keyframe; nothing to map")
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self.credit += self.frames_per_step
+        update = MapUpdate()
+        while self.credit >= 1.0 and self.cursor < len(self.sequence):
+            self._feed_one()
+            self.credit -= 1.0
+        if self.cursor >= len(self.sequence) and not self.finished:
+            update = update.merge(self.frontend.poll()).merge(self._finish())
+        else:
+            update = update.merge(self.frontend.poll())
+        self._push(update, pl_module)
+
+    # -- feeding --------------------------------------------------------------------------------
+    def _feed_one(self) -> None:
+        frame = self.sequence[self.cursor]
+        self._cache[frame.index] = frame
+        while len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
+        t0 = time.perf_counter()
+        self.frontend.process(frame)
+        self.process_seconds += time.perf_counter() - t0
+        self.processed += 1
+        self.cursor += 1
+
+    def _finish(self) -> MapUpdate:
+        self.finished = True
+        update = self.frontend.finish()
+        # after SLAM ends every keyframe pose is replaced by the final optimised trajectory
+        traj = self.frontend.trajectory()
+        for kf_id, idx in self.frontend.keyframe_frames().items():
+            if idx in traj:
+                update.poses.setdefault(kf_id, traj[idx])
+        return update
+
+    def complete_sequence(self) -> None:
+        """Track the frames not fed yet (training stopped early) so every frame gets a pose."""
+        if self.finished:
+            return
+        bar = tqdm(total=len(self.sequence) - self.cursor, desc="tracking the rest", disable=not self.progress, leave=False)
+        while self.cursor < len(self.sequence):
+            self._feed_one()
+            bar.update(1)
+        bar.close()
+        self.frontend.poll()
+        self._finish()
+
+    def _frame(self, index: int) -> Frame:
+        return self._cache[index] if index in self._cache else self.sequence[index]
+
+    def _push(self, update: MapUpdate, module) -> None:
+        if update.is_empty():
+            return
+        kf_frames = self.frontend.keyframe_frames()
+        new = []
+        for kf_id in update.new_keyframes:
+            idx = kf_frames.get(kf_id)
+            if idx is None or kf_id not in update.poses:
+                continue
+            if self.holdout_every and idx % self.holdout_every == 0:
+                self.held_out_keyframes.append(kf_id)
+                continue
+            new.append(self._keyframe(kf_id, self._frame(idx), update.poses[kf_id]))
+            self.trained_frames[kf_id] = idx
+        if new:
+            module.add_keyframes(new)
+        if update.poses:
+            module.update_poses({k: torch.as_tensor(v, dtype=torch.float32) for k, v in update.poses.items()})
+        if update.corrections:
+            module.correct_map({k: torch.as_tensor(v, dtype=torch.float32) for k, v in update.corrections.items()})
+        if len(update.points):
+            module.add_points(
+                torch.as_tensor(update.points, dtype=torch.float32),
+                torch.as_tensor(update.colors, dtype=torch.float32),
+                torch.as_tensor(update.point_kf, dtype=torch.int64),
+            )
+
+    @staticmethod
+    def _keyframe(kf_id: int, frame: Frame, w2c: np.ndarray) -> Keyframe:
+        return Keyframe(
+            kf_id=kf_id,
+            frame_index=frame.index,
+            timestamp=frame.timestamp,
+            image=to_uint8(torch.from_numpy(np.ascontiguousarray(frame.rgb))),
+            w2c=torch.as_tensor(w2c, dtype=torch.float32),
+            camera=frame.camera,
+            depth=torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None else None,
+        )
+
+    def tracking_fps(self) -> float | None:
+        """Frames per second of frontend.process (tracking and, single-threaded, local mapping)."""
+        return self.processed / self.process_seconds if self.process_seconds > 0 else None
+
+    # -- results --------------------------------------------------------------------------------
+    def test_frames(self) -> list[int]:
+        """Tracked frames whose images were never trained on (the paper's test views)."""
+        trained = set(self.trained_frames.values())
+        return sorted(i for i in self.frontend.trajectory() if i not in trained)
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "cursor": self.cursor,
+            "credit": self.credit,
+            "finished": self.finished,
+            "trained_frames": dict(self.trained_frames),
+            "held_out_keyframes": list(self.held_out_keyframes),
+            "frontend": self.frontend.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.cursor, self.credit, self.finished = state["cursor"], state["credit"], state["finished"]
+        self.trained_frames = {int(k): int(v) for k, v in state["trained_frames"].items()}
+        self.held_out_keyframes = list(state["held_out_keyframes"])
+        self.frontend.load_state_dict(state["frontend"])
+        self._restored = True

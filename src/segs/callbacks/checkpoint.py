@@ -1,0 +1,33 @@
+"""Periodic checkpoints written atomically (temporary file + rename)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import lightning as L
+
+
+def save_atomic(trainer: L.Trainer, path: str | Path) -> Path:
+    """trainer.save_checkpoint to path via a temporary file, so a kill leaves the old file intact."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    trainer.save_checkpoint(str(tmp))
+    os.replace(tmp, path)
+    return path
+
+
+class PeriodicCheckpoint(L.Callback):
+    """Writes <dirpath>/last.ckpt every `every_n_steps` steps (0 = never periodically)."""
+
+    def __init__(self, every_n_steps: int = 1000, dirpath: str | None = None):
+        self.every_n_steps = every_n_steps
+        self.dirpath = dirpath
+
+    def path(self, trainer: L.Trainer) -> Path:
+        return Path(self.dirpath or Path(trainer.default_root_dir) / "checkpoints") / "last.ckpt"
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        step = trainer.global_step
+        if self.every_n_steps and step > 0 and step % self.every_n_steps == 0:
+            save_atomic(trainer, self.path(trainer))

@@ -1,0 +1,123 @@
+"""End-of-run evaluation (the paper's protocol) and the files a finished run leaves behind.
+
+Test views are all tracked frames whose images were not trained on; each is rendered at its
+estimated pose and compared with its image (PSNR, SSIM, LPIPS when weights are configured).
+ATE comes from evo. metrics.json is written last and atomically: a run folder without it is not
+a finished result.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import resource
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from segs.modules.metrics import make_lpips, psnr, ssim
+from segs.modules.scene_model import View
+from segs.trajectory import ate, estimated_c2w, write_tum
+
+log = logging.getLogger(__name__)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MB (Linux reports KB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def lost_ranges(lost: list[int]) -> list[list[int]]:
+    """Sorted frame indices -> [[first, last], ...] runs."""
+    runs: list[list[int]] = []
+    for i in sorted(lost):
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return runs
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
+    os.replace(tmp, path)
+
+
+def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
+    pair = np.concatenate([render.numpy(), gt], axis=1)
+    img = (np.clip(pair, 0, 1) * 255 + 0.5).astype(np.uint8)
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+
+def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int, out: Path, progress: bool = True) -> dict:
+    """Render every test frame at its estimated pose; returns the mean metrics and writes renders."""
+    lpips = make_lpips(lpips_weights)
+    keep = set(np.asarray(test)[np.linspace(0, len(test) - 1, save_renders).round().astype(int)]) if test and save_renders else set()
+    (out / "renders").mkdir(parents=True, exist_ok=True)
+    rows = []
+    for idx in tqdm(test, desc="test views", disable=not progress, leave=False):
+        frame = sequence[idx]
+        gt = torch.from_numpy(np.ascontiguousarray(frame.rgb))
+        render = module.render_image(trajectory[idx], frame.camera)["image"]
+        row = {"frame": idx, "psnr": psnr(render, gt), "ssim": ssim(render, gt), "lpips": lpips(render, gt) if lpips else None}
+        rows.append(row)
+        if idx in keep:
+            _save_pair(out / "renders" / f"test_{idx:05d}.png", render, frame.rgb)
+    with open(out / "test_views.csv", "w") as f:
+        f.write("frame,psnr,ssim,lpips\n")
+        for r in rows:
+            lp = "" if r["lpips"] is None else f"{r['lpips']:.5f}"
+            f.write(f"{r['frame']},{r['psnr']:.4f},{r['ssim']:.5f},{lp}\n")
+    mean = lambda k: float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None  # noqa: E731
+    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows)}
+
+
+def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict) -> dict:
+    """Compute and write every result file of a run; returns the metrics dict."""
+    out.mkdir(parents=True, exist_ok=True)
+    frontend = bridge.frontend
+    trajectory = frontend.trajectory()
+    test = bridge.test_frames()
+    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)), out)
+    idx, c2w = estimated_c2w(trajectory)
+    write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
+    ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))
+    counts = module.model.counts()
+    if eval_cfg.get("write_ply", True) and len(module.store):
+        kf = module.store[min(module.store.frames)]
+        module.model.export_ply(out / "point_cloud.ply", View(kf.w2c, kf.camera, kf.kf_id))
+    lost = frontend.lost_frames()
+    steps = timing.get("steps", 0)
+    metrics = {
+        **images,
+        "lpips_note": None if images["lpips"] is not None else "n/a: no AlexNet weights file (eval.lpips_weights)",
+        "ate_rmse_m": ate_result["rmse"],
+        "ate": ate_result,
+        "iterations": steps,
+        "wall_time_s": timing.get("wall_s"),
+        "mapping_time_s": timing.get("fit_s"),
+        "iterations_per_s": steps / timing["fit_s"] if timing.get("fit_s") else None,
+        "iteration_ms_median": float(np.median(module.iteration_ms)) if module.iteration_ms else None,
+        "tracking_fps": bridge.tracking_fps(),
+        "frames": len(sequence),
+        "frames_tracked": len(trajectory),
+        "tracked_fraction": len(trajectory) / max(len(sequence), 1),
+        "lost_frames": len(lost),
+        "lost_ranges": lost_ranges(lost),
+        "keyframes": len(frontend.keyframe_frames()),
+        "training_views": len(module.store),
+        "anchors": int(counts["anchors"]),
+        "gaussians": int(counts["gaussians"]),
+        "params": int(counts["params"]),
+        "model_mb": float(counts["mb"]),
+        "peak_rss_mb": peak_rss_mb(),
+        "status": "finished",
+    }
+    if lost:
+        metrics["ate_note"] = f"{len(lost)} untracked frames have no pose and are excluded from ATE and test views"
+    write_json_atomic(out / "metrics.json", metrics)
+    return metrics

@@ -1,0 +1,115 @@
+"""Structured 3D Gaussians (Scaffold-GS): fixed anchors whose k Gaussians are decoded by MLPs.
+
+Per anchor: a fixed position (a buffer, never optimised), a feature f [F], k offsets [k,3] and
+6 log-scales l (3 for offsets, 3 for Gaussian scales). For the anchors inside the view frustum:
+  x        = [f, d (, delta)]        d = (anchor - camera centre)/delta, delta = its length
+  opacity  = tanh(M_alpha(x))        [k]; Gaussians with opacity <= 0 are dropped
+  cov      = M_cov(x)                [7k]: scale = exp(l)[3:6] * sigmoid(cov[:3]), rot = normalize(cov[3:7])
+  colour   = sigmoid(M_c([x, e]))    [3k]; e = appearance embedding (AfME / AE), absent when A = 0
+  mean     = anchor + offset * exp(l)[0:3]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from segs.modules.optim import PrimitiveParams
+from segs.modules.scene_model import Decoded, View, frustum_mask
+
+
+def mlp(n_in: int, hidden: int, n_out: int) -> nn.Sequential:
+    """Linear-ReLU-Linear decoder."""
+    return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_out))
+
+
+@dataclass
+class DecodeInfo:
+    """Where each rendered Gaussian came from (for densification statistics).
+
+    visible: [V] long indices of the anchors decoded for this view
+    keep:    [V*k] bool, slots whose opacity > 0 (the rendered Gaussians, in order)
+    opacity: [V,k] raw tanh opacities (detached), for the anchor opacity statistics
+    """
+
+    visible: torch.Tensor
+    keep: torch.Tensor
+    opacity: torch.Tensor
+
+
+class AnchorField(nn.Module):
+    """Anchors + the three Scaffold-GS decoders (hidden width `hidden`)."""
+
+    def __init__(self, k: int = 10, feature_dim: int = 32, hidden: int = 32, appearance_dim: int = 0,
+                 use_distance: bool = False, frustum_margin: float = 0.15):  # fmt: skip
+        super().__init__()
+        self.k, self.feature_dim, self.appearance_dim = k, feature_dim, appearance_dim
+        self.use_distance, self.frustum_margin = use_distance, frustum_margin
+        n_in = feature_dim + 3 + int(use_distance)
+        self.params = PrimitiveParams({"features": (feature_dim,), "offsets": (k, 3), "log_scales": (6,)}, prefix="anchor.")
+        self.register_buffer("xyz", torch.zeros(0, 3))
+        self.mlp_opacity = mlp(n_in, hidden, k)
+        self.mlp_cov = mlp(n_in, hidden, 7 * k)
+        self.mlp_color = mlp(n_in + appearance_dim, hidden, 3 * k)
+
+    def __len__(self) -> int:
+        return self.xyz.shape[0]
+
+    def decoder_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {
+            "mlp_opacity": list(self.mlp_opacity.parameters()),
+            "mlp_cov": list(self.mlp_cov.parameters()),
+            "mlp_color": list(self.mlp_color.parameters()),
+        }
+
+    def add(self, xyz: torch.Tensor, features: torch.Tensor, log_scales: torch.Tensor, optimizer) -> None:
+        """Append anchors: positions [M,3], features [M,F], log-scales [M,6]; offsets start at 0."""
+        m = xyz.shape[0]
+        self.params.extend(
+            {"features": features, "offsets": torch.zeros(m, self.k, 3, device=xyz.device), "log_scales": log_scales},
+            optimizer,
+        )
+        self.xyz = torch.cat([self.xyz, xyz.to(self.xyz)])
+
+    def keep(self, mask: torch.Tensor, optimizer) -> None:
+        """Keep anchors where mask [N] is True."""
+        self.params.keep(mask, optimizer)
+        self.xyz = self.xyz[mask]
+
+    def gaussian_positions(self) -> torch.Tensor:
+        """[N,k,3] world positions of every anchor's k Gaussians (no gradient)."""
+        scale = torch.exp(self.params["log_scales"].detach()[:, :3])
+        return self.xyz[:, None, :] + self.params["offsets"].detach() * scale[:, None, :]
+
+    def decode(self, view: View, embedding: torch.Tensor | None, cull: bool = True) -> tuple[Decoded, DecodeInfo]:
+        """Decode the Gaussians of the anchors inside the view frustum (all anchors if not cull).
+
+        embedding: [A] appearance embedding or None.
+        """
+        if cull:
+            visible = torch.nonzero(frustum_mask(self.xyz, view, self.frustum_margin)).squeeze(1)
+        else:
+            visible = torch.arange(len(self), device=self.xyz.device)
+        xyz = self.xyz[visible]
+        rel = xyz - view.center.to(xyz)
+        dist = rel.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        x = torch.cat([self.params["features"][visible], rel / dist] + ([dist] if self.use_distance else []), -1)
+        v, k = xyz.shape[0], self.k
+        opacity = torch.tanh(self.mlp_opacity(x))  # [V,k]
+        keep = (opacity > 0).reshape(-1)
+        xc = x if embedding is None or self.appearance_dim == 0 else torch.cat([x, embedding.to(x).expand(v, -1)], -1)
+        color = torch.sigmoid(self.mlp_color(xc)).reshape(v * k, 3)
+        cov = self.mlp_cov(x).reshape(v * k, 7)
+        scale = torch.exp(self.params["log_scales"][visible]).repeat_interleave(k, 0)  # [V*k,6]
+        offsets = self.params["offsets"][visible].reshape(v * k, 3) * scale[:, :3]
+        means = xyz.repeat_interleave(k, 0) + offsets
+        decoded = Decoded(
+            means=means[keep],
+            quats=F.normalize(cov[keep, 3:7], dim=-1),
+            scales=(scale[:, 3:] * torch.sigmoid(cov[:, :3]))[keep],
+            opacities=opacity.reshape(-1)[keep],
+            colors=color[keep],
+        )
+        return decoded, DecodeInfo(visible, keep, opacity.detach())

@@ -1,0 +1,178 @@
+"""Unit tests of the SEGS concepts: FPR, AfME, SEPM, decoding, growth / pruning, optimizer edits."""
+import math
+
+import pytest
+import torch
+
+from segs.data.frame import Camera
+from segs.modules.afme import AppearanceEncoder, canonical_pose
+from segs.modules.anchors import AnchorField
+from segs.modules.densification import AnchorDensifier
+from segs.modules.fpr import fpr_loss, highpass_mask, lowpass_mask
+from segs.modules.optim import make_adam
+from segs.modules.scene_model import View
+from segs.modules.sepm import voxelize
+
+
+def test_fpr_zero_for_identical_images():
+    img = torch.rand(24, 32, 3)
+    for mode in ("high", "low", "low_high"):
+        assert float(fpr_loss(img, img.clone(), scales=3, mode=mode)) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_fpr_hand_computed_delta_image():
+    # A unit impulse has |F| = 1 at every frequency. 8x8: r = int(0.4*8/2) = 1, so the high-pass
+    # mask zeroes the 2x2 centre: 60 of 64 entries of one of 3 channels differ by 1 from a black render.
+    gt = torch.zeros(8, 8, 3)
+    gt[0, 0, 1] = 1.0
+    loss = fpr_loss(torch.zeros(8, 8, 3), gt, scales=1, mode="high")
+    assert float(loss) == pytest.approx(60 / (3 * 64), rel=1e-6)
+    # 4x4: r = 0, nothing masked -> 16 / 48
+    gt4 = torch.zeros(4, 4, 3)
+    gt4[0, 0, 0] = 1.0
+    assert float(fpr_loss(torch.zeros(4, 4, 3), gt4, scales=1)) == pytest.approx(1 / 3, rel=1e-6)
+
+
+def test_fpr_pyramid_weights_scales():
+    gt, render = torch.rand(32, 32, 3), torch.rand(32, 32, 3)
+    one = fpr_loss(render, gt, scales=1)
+    two = fpr_loss(render, gt, scales=2)
+    half = torch.nn.functional.interpolate(render.permute(2, 0, 1)[None], size=(16, 16), mode="bilinear")[0].permute(1, 2, 0)
+    half_gt = torch.nn.functional.interpolate(gt.permute(2, 0, 1)[None], size=(16, 16), mode="bilinear")[0].permute(1, 2, 0)
+    assert float(two) == pytest.approx(float(one) + 0.5 * float(fpr_loss(half, half_gt, scales=1)), rel=1e-5)
+
+
+def test_highpass_mask_shape():
+    m = highpass_mask(240, 320)
+    r = int(0.4 * 240 / 2)  # 48
+    assert m.shape == (240, 320)
+    assert int((m == 0).sum()) == (2 * r) ** 2
+    assert m[120, 160] == 0 and m[120 - r, 160 - r] == 0 and m[120 - r - 1, 160] == 1 and m[0, 0] == 1
+    lp = lowpass_mask(240, 320)
+    assert int(lp.sum()) == (2 * 24) ** 2
+
+
+def test_afme_quaternion_sign_canonicalized():
+    torch.manual_seed(0)
+    enc = AppearanceEncoder("linear", dim=8)
+    t, q = torch.randn(3), torch.nn.functional.normalize(torch.randn(4), dim=0)
+    a, b = enc.embed(torch.cat([t, q])), enc.embed(torch.cat([t, -q]))
+    assert torch.allclose(a, b)
+    assert canonical_pose(t, -q)[3] >= 0
+
+
+def test_afme_embedding_depends_on_pose_only_through_linear_layer():
+    enc = AppearanceEncoder("linear", dim=4)
+    w2c = torch.eye(4)
+    w2c[:3, 3] = torch.tensor([0.1, 0.2, 0.3])
+    out = enc(w2c, kf_id=None)
+    expected = enc.net.weight @ torch.tensor([0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0]) + enc.net.bias
+    assert torch.allclose(out, expected, atol=1e-6)
+
+
+def test_ae_uses_nearest_training_view_for_unseen_frames():
+    enc = AppearanceEncoder("ae", dim=2)
+    with torch.no_grad():
+        enc.table.weight[:2] = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
+    pose = lambda x: torch.tensor([[1, 0, 0, -x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])  # centre at (x,0,0)
+    enc.register_view(7, View(pose(0.0), None).center)
+    enc.register_view(9, View(pose(1.0), None).center)
+    assert torch.equal(enc(pose(0.9), None), torch.tensor([0.0, 1.0]))
+    assert torch.equal(enc(pose(0.9), 7), torch.tensor([1.0, 0.0]))
+
+
+def test_sepm_voxelizes_and_skips_occupied_voxels():
+    eps = 0.1
+    pts = torch.tensor([[0.01, 0.0, 0.0], [0.02, 0.01, 0.0], [0.5, 0.5, 0.5], [1.04, 0.0, 0.0]])
+    existing = torch.tensor([[1.0, 0.0, 0.0]])
+    centres, index = voxelize(pts, eps, existing)
+    got = sorted(tuple(round(v, 6) for v in c.tolist()) for c in centres)
+    assert got == [(0.0, 0.0, 0.0), (0.5, 0.5, 0.5)]
+    assert index[3] == -1 and index[0] == index[1] and index[0] >= 0
+    again, _ = voxelize(pts, eps, torch.cat([existing, centres]))
+    assert again.shape[0] == 0
+
+
+def _camera():
+    return Camera(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+
+
+def _field(n=20, k=4, seed=0):
+    torch.manual_seed(seed)
+    field = AnchorField(k=k, feature_dim=8, hidden=8, appearance_dim=0)
+    xyz = torch.rand(n, 3) * 2 - 1
+    xyz[:, 2] += 4.0
+    field.add(xyz, torch.randn(n, 8), torch.full((n, 6), math.log(0.05)), None)
+    return field
+
+
+def test_decoded_count_is_k_times_visible_minus_dropped():
+    field = _field(n=30, k=5)
+    with torch.no_grad():  # two anchors behind the camera are culled
+        field.xyz[:2, 2] = -3.0
+    decoded, info = field.decode(View(torch.eye(4), _camera()), None)
+    assert info.visible.numel() == 28
+    dropped = int((info.opacity <= 0).sum())
+    assert len(decoded) == 5 * 28 - dropped
+    assert (decoded.opacities > 0).all()
+    assert 0 < dropped < 5 * 28  # random decoders drop some, not all
+
+
+def _densifier_setup():
+    field = _field(n=6, k=2)
+    opt = make_adam(field.params.groups({"features": 0.01, "offsets": 0.01, "log_scales": 0.01}))
+    dens = AnchorDensifier(k=2, voxel_size=0.01, grad_threshold=1e-3, min_opacity=0.005, success_threshold=0.8)
+    dens.extend(len(field))
+    return field, opt, dens
+
+
+def _step_adam(field, opt):
+    loss = sum((p**2).sum() for p in field.params.params.values())
+    loss.backward()
+    opt.step()
+    opt.zero_grad()
+
+
+def test_growth_adds_anchors_only_in_empty_cells_and_keeps_moments():
+    field, opt, dens = _densifier_setup()
+    _step_adam(field, opt)
+    feat = field.params["features"]
+    before = opt.state[feat]["exp_avg"].clone()
+    with torch.no_grad():  # Gaussian 0 of anchor 0 sits 5 cm away; Gaussian 1 sits on anchor 1
+        scale = torch.exp(field.params["log_scales"][:, :3])
+        field.params["offsets"][0, 0] = torch.tensor([0.05, 0.0, 0.0]) / scale[0]
+        field.params["offsets"][1, 1] = 0.0
+    dens.grad_accum[:] = 0.0
+    dens.grad_visits[:] = 100.0
+    dens.grad_accum[0, 0] = 1.0  # strong gradient
+    dens.grad_accum[1, 1] = 1.0  # strong, but its cell already holds anchor 1
+    tags = torch.arange(6)
+    gen = torch.Generator().manual_seed(0)
+    out, tags = dens.adjust(field, tags, interval=10, optimizer=opt, generator=gen)
+    assert out["grown"] >= 1 and len(field) == 6 + out["grown"]
+    new = field.xyz[6:]
+    target = field.xyz[0] + torch.tensor([0.05, 0.0, 0.0])
+    assert (new - target).norm(dim=-1).min() < 0.16 * 1.8  # in the coarse cell around the Gaussian
+    assert (new[:, None] - field.xyz[None, :6]).norm(dim=-1).min() > 1e-6  # never on an existing anchor
+    assert torch.equal(tags[6:], torch.zeros(out["grown"], dtype=torch.long))  # inherits anchor 0's tag
+    feat = field.params["features"]
+    assert torch.equal(opt.state[feat]["exp_avg"][:6], before)
+    assert torch.equal(opt.state[feat]["exp_avg"][6:], torch.zeros_like(opt.state[feat]["exp_avg"][6:]))
+    assert feat in opt.param_groups[0]["params"]
+
+
+def test_pruning_removes_low_opacity_anchors_and_keeps_moments():
+    field, opt, dens = _densifier_setup()
+    _step_adam(field, opt)
+    offsets = field.params["offsets"]
+    kept_state = opt.state[offsets]["exp_avg"][[0, 1, 3, 4, 5]].clone()
+    dens.anchor_visits[:] = 50.0
+    dens.opacity_accum[:] = 10.0
+    dens.opacity_accum[2] = 0.01  # < 0.005 * 50
+    xyz = field.xyz.clone()
+    out, tags = dens.adjust(field, torch.arange(6), interval=10, optimizer=opt)
+    assert out["pruned"] == 1 and len(field) == 5
+    assert torch.equal(field.xyz, xyz[[0, 1, 3, 4, 5]])
+    assert torch.equal(tags, torch.tensor([0, 1, 3, 4, 5]))
+    assert torch.equal(opt.state[field.params["offsets"]]["exp_avg"], kept_state)
+    assert (dens.anchor_visits == 0).all()  # statistics window restarted
