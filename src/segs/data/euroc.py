@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from segs.data.base import ReaderSequence, check_sensor, gt_pose
-from segs.data.files import (check_files_exist, check_increasing, read_numeric, read_rgb,
+from segs.data.files import (check_files_exist, check_increasing, image_shape, read_numeric, read_rgb,
                              read_rows, require_dir, require_file, to_int)
 from segs.data.frame import Camera, Frame
 from segs.data.poses import check_quaternions, check_rigid, interpolate_poses, poses_from_tq
@@ -43,7 +43,7 @@ def _field(data: dict, key: str, n: int, path: Path) -> np.ndarray:
         value = value.get("data")
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise DataError(f"{path}: '{key}' must be a list of {n} numbers") from None
     if len(arr) != n or not np.all(np.isfinite(arr)):
         raise DataError(f"{path}: '{key}' must be a list of {n} finite numbers")
@@ -59,7 +59,7 @@ def read_calibration(path: str | Path) -> EurocCamera:
         if lines and lines[0].startswith("%YAML"):
             text = "\n".join(lines[1:])
         data = yaml.safe_load(text)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError) as exc:
         raise DataError(f"{path}: cannot parse YAML ({type(exc).__name__})") from None
     if not isinstance(data, dict):
         raise DataError(f"{path}: expected a YAML mapping with intrinsics, distortion_coefficients, resolution, T_BS")
@@ -149,6 +149,8 @@ class EurocSequence(ReaderSequence):
     def _calibrate(self, downscale: float) -> None:
         left = read_calibration(self.mav / "cam0" / "sensor.yaml")
         self.shape = left.size[::-1]
+        if image_shape(self.left_paths[0]) != self.shape:
+            raise DataError(f"{self.left_paths[0]}: image is not {left.size[0]}x{left.size[1]} as in cam0/sensor.yaml")
         if self.sensor == "mono":
             self.rectify_rotation = np.eye(3)
             self._maps = [cv2.initUndistortRectifyMap(left.K, left.dist, None, left.K, left.size, cv2.CV_32FC1)]
