@@ -31,14 +31,16 @@ def test_quaternion_round_trip():
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     r = quat_to_matrix(q)
     np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(r)), r, atol=1e-12)
-    np.testing.assert_allclose(quat_to_matrix(np.array([[0, 0, np.sin(0.5), np.cos(0.5)]]))[0], _rotz(np.degrees(1.0)), atol=1e-12)
+    half_turn_z = np.array([[0, 0, np.sin(0.5), np.cos(0.5)]])  # 1 rad about z
+    np.testing.assert_allclose(quat_to_matrix(half_turn_z)[0], _rotz(np.degrees(1.0)), atol=1e-12)
 
 
 def test_slerp_is_constant_speed():
     q0, q1 = matrix_to_quat(_rotz(0)), matrix_to_quat(_rotz(90))
     for a in (0.0, 0.25, 0.5, 1.0):
         np.testing.assert_allclose(quat_to_matrix(slerp(q0, q1, np.array([a])))[0], _rotz(90 * a), atol=1e-12)
-    np.testing.assert_allclose(quat_to_matrix(slerp(q0, -q1, np.array([0.5])))[0], _rotz(45), atol=1e-12)  # sign-agnostic
+    flipped = slerp(q0, -q1, np.array([0.5]))  # q and -q are the same rotation
+    np.testing.assert_allclose(quat_to_matrix(flipped)[0], _rotz(45), atol=1e-12)
 
 
 def test_interpolation_rules():
@@ -153,7 +155,8 @@ def test_fuzz_binary_files(tmp_path, blob):
 
 VALUES = st.recursive(
     st.one_of(st.none(), st.booleans(), st.integers(-10**30, 10**30), st.floats(), st.text(max_size=8)),
-    lambda inner: st.one_of(st.lists(inner, max_size=17), st.dictionaries(st.sampled_from(["data", "rows", "cols"]), inner, max_size=3)),
+    lambda inner: st.one_of(st.lists(inner, max_size=17),
+                            st.dictionaries(st.sampled_from(["data", "rows", "cols"]), inner, max_size=3)),
     max_leaves=20,
 )
 GOOD = {"T_BS": {"cols": 4, "rows": 4, "data": np.eye(4).ravel().tolist()}, "resolution": [752, 480],

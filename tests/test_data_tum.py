@@ -116,7 +116,8 @@ def test_association_drops_unmatched_frames(folder):
 
 
 def test_association_fails_when_nothing_pairs(folder):
-    text = "".join(f"{float(ln.split()[0]) + 0.5:.6f} {ln.split()[1]}\n" for ln in _data_lines(folder / "depth.txt"))
+    rows = [ln.split() for ln in _data_lines(folder / "depth.txt")]
+    text = "".join(f"{float(t) + 0.5:.6f} {name}\n" for t, name in rows)
     (folder / "depth.txt").write_text(text)
     with pytest.raises(DataError, match="depth.txt.*0.02 s"):
         TumSequence(folder)
@@ -248,7 +249,8 @@ def test_malformed_index_lines(folder, line, match):
 
 @pytest.mark.parametrize("edit,match", [
     (lambda ln: ln.rsplit(" ", 1)[0] + " 2.0", r"groundtruth.txt:4: quaternion norm"),
-    (lambda ln: ln.replace(ln.split()[1], "nan", 1), r"groundtruth.txt:4: expected a finite number, got 'nan'"),
+    (lambda ln: ln.replace(ln.split()[1], "nan", 1),
+     r"groundtruth.txt:4: expected a finite number, got 'nan'"),
     (lambda ln: ln + " 7", r"groundtruth.txt:4: expected 8 columns, got 9"),
     (lambda ln: "999 " + ln.split(" ", 1)[1], r"groundtruth.txt:4: decreasing timestamp"),
 ])

@@ -20,7 +20,8 @@ def check_sensor(sensor: str, supported: dict[str, str | None], where: object) -
     reason = supported.get(sensor, "not supported by this dataset")
     if reason is not None:
         usable = [s for s, r in supported.items() if r is None]
-        raise DataError(f"{where}: cannot provide sensor {sensor!r}: {reason} (available: {', '.join(usable) or 'none'})")
+        available = ", ".join(usable) or "none"
+        raise DataError(f"{where}: cannot provide sensor {sensor!r}: {reason} (available: {available})")
 
 
 def check_factor(factor: float) -> float:
@@ -133,4 +134,5 @@ class ReaderSequence(Sequence):
 
     def __repr__(self) -> str:
         cam = self.camera
-        return f"{type(self).__name__}({self.name!r}, sensor={self.sensor!r}, {len(self)} frames, {cam.width}x{cam.height})"
+        return (f"{type(self).__name__}({self.name!r}, sensor={self.sensor!r}, {len(self)} frames, "
+                f"{cam.width}x{cam.height})")

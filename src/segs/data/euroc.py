@@ -59,10 +59,12 @@ def read_calibration(path: str | Path) -> EurocCamera:
         if lines and lines[0].startswith("%YAML"):
             text = "\n".join(lines[1:])
         data = yaml.safe_load(text)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, ValueError, TypeError, OverflowError, RecursionError) as exc:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, ValueError, TypeError, OverflowError,
+            RecursionError) as exc:
         raise DataError(f"{path}: cannot parse YAML ({type(exc).__name__})") from None
     if not isinstance(data, dict):
-        raise DataError(f"{path}: expected a YAML mapping with intrinsics, distortion_coefficients, resolution, T_BS")
+        raise DataError(f"{path}: expected a YAML mapping with intrinsics, distortion_coefficients, "
+                        "resolution, T_BS")
     for key, want in (("camera_model", "pinhole"), ("distortion_model", "radial-tangential")):
         if data.get(key, want) != want:
             raise DataError(f"{path}: {key} {data.get(key)!r} is not supported, expected {want!r}")
@@ -126,7 +128,7 @@ class EurocSequence(ReaderSequence):
         check_sensor(sensor, {"mono": None, "stereo": None if (mav / "cam1").is_dir() else "no cam1 folder",
                               "rgbd": "EuRoC has no depth camera"}, self.root)
         self.sensor, self.mav = sensor, mav
-        self.name = name or (self.root.resolve().name if mav != self.root else self.root.resolve().parent.name)
+        self.name = name or (self.root if mav != self.root else self.root.parent).resolve().name
         self._index()
         self._calibrate(downscale)
         self._ground_truth(float(gt_max_difference))
@@ -138,7 +140,8 @@ class EurocSequence(ReaderSequence):
             ns_right, right_paths = read_image_index(self.mav / "cam1")
             common, il, ir = np.intersect1d(ns, ns_right, assume_unique=True, return_indices=True)
             if not len(common):
-                raise DataError(f"{self.mav / 'cam1' / 'data.csv'}: no timestamp in common with cam0/data.csv")
+                csv = self.mav / "cam1" / "data.csv"
+                raise DataError(f"{csv}: no timestamp in common with cam0/data.csv")
             self.dropped = len(ns) - len(common)
             self.left_paths = [self.left_paths[i] for i in il]
             self.right_paths = [right_paths[i] for i in ir]
@@ -150,16 +153,19 @@ class EurocSequence(ReaderSequence):
         left = read_calibration(self.mav / "cam0" / "sensor.yaml")
         self.shape = left.size[::-1]
         if image_shape(self.left_paths[0]) != self.shape:
-            raise DataError(f"{self.left_paths[0]}: image is not {left.size[0]}x{left.size[1]} as in cam0/sensor.yaml")
+            w, h = left.size
+            raise DataError(f"{self.left_paths[0]}: image is not {w}x{h} as in cam0/sensor.yaml")
         if self.sensor == "mono":
             self.rectify_rotation = np.eye(3)
-            self._maps = [cv2.initUndistortRectifyMap(left.K, left.dist, None, left.K, left.size, cv2.CV_32FC1)]
+            self._maps = [cv2.initUndistortRectifyMap(left.K, left.dist, None, left.K, left.size,
+                                                      cv2.CV_32FC1)]
             fx, fy, cx, cy = (float(v) for v in (left.K[0, 0], left.K[1, 1], left.K[0, 2], left.K[1, 2]))
             self.set_camera(Camera(fx, fy, cx, cy, *left.size), downscale)
         else:
             right = read_calibration(self.mav / "cam1" / "sensor.yaml")
             if right.size != left.size:
-                raise DataError(f"{self.mav / 'cam1' / 'sensor.yaml'}: resolution {right.size} differs from cam0's {left.size}")
+                path = self.mav / "cam1" / "sensor.yaml"
+                raise DataError(f"{path}: resolution {right.size} differs from cam0's {left.size}")
             self._rectify(left, right, downscale)
         self.T_BS = left.T_BS
 

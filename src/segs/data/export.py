@@ -50,7 +50,8 @@ def write_tum(seq: Sequence, folder: str | Path, frames=None, time_offset: float
     if depth_lines:
         (folder / "depth.txt").write_text(header + "filename\n" + "\n".join(depth_lines) + "\n")
     if gt_lines:
-        (folder / "groundtruth.txt").write_text(header + "tx ty tz qx qy qz qw\n" + "\n".join(gt_lines) + "\n")
+        gt_text = header + "tx ty tz qx qy qz qw\n" + "\n".join(gt_lines) + "\n"
+        (folder / "groundtruth.txt").write_text(gt_text)
     return folder
 
 

@@ -84,7 +84,8 @@ def check_increasing(times: np.ndarray, path: Path, linenos: list[int]) -> None:
         raise DataError(f"{path}:{linenos[i]}: {kind} timestamp (timestamps must increase)")
 
 
-def read_numeric(path: Path, columns: tuple[int, int], sep: str | None = None) -> tuple[np.ndarray, list[int]]:
+def read_numeric(path: Path, columns: tuple[int, int],
+                 sep: str | None = None) -> tuple[np.ndarray, list[int]]:
     """A table of finite numbers: ([N, columns[0]] float64, line numbers); extra columns ignored."""
     rows = read_rows(path, columns, sep)
     data = np.array([[to_float(tok, path, n) for tok in f[: columns[0]]] for n, f in rows])
@@ -150,9 +151,11 @@ def read_depth(path: Path, scale: float, shape: tuple[int, int] | None = None) -
     img = _imread(path)
     if img.dtype != np.uint16 or img.ndim != 2:
         channels = 1 if img.ndim == 2 else img.shape[2]
-        raise DataError(f"{path}: expected a 16-bit single-channel depth image, got {img.dtype} with {channels} channels")
+        raise DataError(f"{path}: expected a 16-bit single-channel depth image, "
+                        f"got {img.dtype} with {channels} channels")
     if shape is not None and img.shape != tuple(shape):
-        raise DataError(f"{path}: depth image is {img.shape[1]}x{img.shape[0]}, expected {shape[1]}x{shape[0]} like the colour image")
+        raise DataError(f"{path}: depth image is {img.shape[1]}x{img.shape[0]}, "
+                        f"expected {shape[1]}x{shape[0]} like the colour image")
     return img.astype(np.float32) / np.float32(scale)
 
 

@@ -29,11 +29,12 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Rotations [N,3,3] -> unit quaternions [N,4] (x, y, z, w), w >= 0."""
     r = np.asarray(r, np.float64).reshape(-1, 3, 3)
+    xx, xy, xz, yx, yy, yz, zx, zy, zz = (r[:, i, j] for i in range(3) for j in range(3))
     m = np.stack([  # symmetric 4x4 whose top eigenvector is the quaternion (Bar-Itzhack)
-        [r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2], r[:, 1, 0] + r[:, 0, 1], r[:, 2, 0] + r[:, 0, 2], r[:, 2, 1] - r[:, 1, 2]],
-        [r[:, 1, 0] + r[:, 0, 1], r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2], r[:, 2, 1] + r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0]],
-        [r[:, 2, 0] + r[:, 0, 2], r[:, 2, 1] + r[:, 1, 2], r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1], r[:, 1, 0] - r[:, 0, 1]],
-        [r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1], r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]],
+        [xx - yy - zz, yx + xy, zx + xz, zy - yz],
+        [yx + xy, yy - xx - zz, zy + yz, xz - zx],
+        [zx + xz, zy + yz, zz - xx - yy, yx - xy],
+        [zy - yz, xz - zx, yx - xy, xx + yy + zz],
     ]).transpose(2, 0, 1) / 3.0
     q = np.linalg.eigh(m)[1][:, :, -1]
     return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
@@ -80,7 +81,8 @@ def slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray, max_difference: float) -> np.ndarray:
+def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray,
+                      max_difference: float) -> np.ndarray:
     """Poses [M,4,4] sampled at increasing times [M], evaluated at query times [N] -> [N,4,4].
 
     A query between two samples that are both within max_difference seconds is interpolated

@@ -67,10 +67,11 @@ class ReplicaSequence(ReaderSequence):
         self.rgb_paths = list_frames(results)
         self.depth_paths = None
         if sensor == "rgbd":
-            self.depth_paths = [results / re.sub(r"^frame(\d+)\.\w+$", r"depth\1.png", p.name) for p in self.rgb_paths]
+            self.depth_paths = [results / _FRAME.sub(r"depth\1.png", p.name) for p in self.rgb_paths]
             missing = [p for p in self.depth_paths if not p.is_file()]
             if missing:
-                raise DataError(f"{missing[0]}: depth image not found ({len(missing)} missing for {len(self.rgb_paths)} frames)")
+                raise DataError(f"{missing[0]}: depth image not found "
+                                f"({len(missing)} missing for {len(self.rgb_paths)} frames)")
         self.timestamps = np.arange(len(self.rgb_paths), dtype=np.float64) / float(fps)
         self._ground_truth()
         self._calibrate(intrinsics, downscale)
@@ -81,14 +82,15 @@ class ReplicaSequence(ReaderSequence):
         if path.is_file():
             poses = read_traj(path)
             if len(poses) != len(self.rgb_paths):
-                raise DataError(f"{path}: {len(poses)} poses for {len(self.rgb_paths)} frames in results/, expected one per frame")
+                raise DataError(f"{path}: {len(poses)} poses for {len(self.rgb_paths)} frames in "
+                                "results/, expected one per frame")
             self.gt_poses = poses
 
     def _calibrate(self, intrinsics, downscale) -> None:
         h, w = self.shape = image_shape(self.rgb_paths[0])
         k = numbers(intrinsics, (4,), "intrinsics")
         if k is None and (w, h) != IMAGE_SIZE:
-            raise DataError(f"{self.rgb_paths[0]}: image is {w}x{h}, expected {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]} "
+            raise DataError(f"{self.rgb_paths[0]}: image is {w}x{h}, expected 1200x680 "
                             "(NICE-SLAM Replica); pass intrinsics=[fx, fy, cx, cy] for other sizes")
         fx, fy, cx, cy = pinhole(k if k is not None else INTRINSICS)
         self.set_camera(Camera(fx, fy, cx, cy, w, h), downscale)

@@ -113,7 +113,8 @@ class TumSequence(ReaderSequence):
             depth_paths = check_files_exist(self.root, dnames, depth_txt, dlines)
             i, j = associate(times, dtimes, max_difference)
             if not len(i):
-                raise DataError(f"{depth_txt}: no depth image within {max_difference} s of any colour image of {rgb_txt}")
+                raise DataError(f"{depth_txt}: no depth image within {max_difference} s of any "
+                                f"colour image of {rgb_txt}")
             self.rgb_paths = [self.rgb_paths[k] for k in i]
             self.depth_paths = [depth_paths[k] for k in j]
             times = times[i]
