@@ -175,6 +175,15 @@ def test_cache_returns_independent_copies():
         seq[5]
 
 
+def test_pickles_without_the_scene():
+    import pickle
+    seq = SyntheticSequence(n_frames=4, texture="mixed")
+    seq[0]
+    blob = pickle.dumps(seq)
+    assert len(blob) < 4_000_000
+    np.testing.assert_array_equal(pickle.loads(blob)[2].rgb, seq[2].rgb)
+
+
 def test_render_speed():
     seq = SyntheticSequence(sensor="rgbd", n_frames=100)
     seq[0]
@@ -187,7 +196,8 @@ def test_render_speed():
 
 @pytest.mark.parametrize("kwargs", [dict(sensor="depth"), dict(trajectory="spiral"),
                                     dict(texture="wood"), dict(n_frames=0), dict(fov_deg=180),
-                                    dict(sensor="stereo", baseline=0.0)])
+                                    dict(sensor="stereo", baseline=0.0), dict(blank_frames=["x"]),
+                                    dict(blank_frames=[(1, 2, 3)])])
 def test_bad_configuration(kwargs):
     with pytest.raises(ConfigError):
         SyntheticSequence(**kwargs)

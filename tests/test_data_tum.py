@@ -170,6 +170,8 @@ def test_unknown_camera_needs_intrinsics(tmp_path, synthetic):
     with pytest.raises(DataError, match="freiburg"):
         TumSequence(folder)
     assert TumSequence(folder, freiburg=2).camera.fx == 520.9
+    with pytest.raises(ConfigError):
+        TumSequence(folder, freiburg=4)
     assert TumSequence(folder, intrinsics=[100, 101, 30, 20]).camera.fy == 101
     with pytest.raises(ConfigError):
         TumSequence(folder, intrinsics=[100, 101, 30])

@@ -100,13 +100,18 @@ def exposure(index: int, amplitude: float) -> np.ndarray:
 
 
 def _blank_set(blank_frames: Iterable) -> frozenset[int]:
+    """Frame indices from ints and (start, stop) half-open ranges."""
     out: set[int] = set()
-    for item in blank_frames:
-        if isinstance(item, (int, np.integer)):
-            out.add(int(item))
-        else:
-            start, stop = item
-            out.update(range(int(start), int(stop)))
+    try:
+        for item in blank_frames:
+            if isinstance(item, (int, np.integer)):
+                out.add(int(item))
+            else:
+                start, stop = item
+                out.update(range(int(start), int(stop)))
+    except (TypeError, ValueError):
+        raise ConfigError(f"blank_frames must hold ints and (start, stop) pairs, "
+                          f"got {blank_frames!r}") from None
     return frozenset(out)
 
 
@@ -148,6 +153,7 @@ class SyntheticSequence(Sequence):
         seed: int = 0,
         fov_deg: float = 70.0,
     ):
+        n_frames, width, height = int(n_frames), int(width), int(height)
         _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseline)
         self.sensor, self.exposure_change, self.dropped = sensor, float(exposure_change), 0
         self.name = f"synthetic_{trajectory}_{texture}"
@@ -157,6 +163,7 @@ class SyntheticSequence(Sequence):
         self.timestamps = np.arange(n_frames, dtype=np.float64) / FPS
         self.gt_poses = trajectory_poses(trajectory, n_frames, speed)
         self.blank = _blank_set(blank_frames)
+        self._texture_seed = (texture, seed)
         self._scene = get_scene(texture, seed)
         u, v = np.meshgrid(np.arange(width), np.arange(height))
         self._rays = (((u - self.camera.cx) / fx).ravel().astype(np.float32),
@@ -165,6 +172,16 @@ class SyntheticSequence(Sequence):
 
     def __len__(self) -> int:
         return len(self.timestamps)
+
+    def __getstate__(self) -> dict:
+        """Pickle without the shared scene and the frame cache (e.g. to DataLoader workers)."""
+        state = dict(self.__dict__, _scene=None)
+        state["_cache"] = OrderedDict()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._scene = get_scene(*self._texture_seed)
 
     def render(self, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unexposed view from pose c2w [4,4]: rgb [H,W,3] float32 in [0,1], z-depth [H,W] float32."""

@@ -122,7 +122,7 @@ def _pack(surfaces: list[Surface]) -> tuple[list[Surface], tuple[int, int]]:
 
 
 class Scene:
-    """The room, its furniture and the texture atlas for one (texture, seed).
+    """The room, its furniture and the 8-bit texture atlas for one (texture, seed).
 
     Use :func:`get_scene` (cached) rather than the constructor.
     """
@@ -132,13 +132,14 @@ class Scene:
         for lo, hi in OBSTACLES:
             faces += _box_faces(lo, hi)
         self.surfaces, shape = _pack(faces)
-        self.atlas = np.zeros(shape + (3,), np.float32)
+        self.atlas = np.zeros(shape + (3,), np.uint8)  # 8 bit: 4x less memory, faster remap
         rng = np.random.default_rng(seed)
         for sid, s in enumerate(self.surfaces):
             poor = texture == "poor" or (texture == "mixed" and sid in _MIXED_POOR_FACES)
             rows, cols = _tile_shape(s)
             tile = (_poor_texture if poor else _rich_texture)(rng, rows, cols)
             tile = cv2.copyMakeBorder(tile, _PAD, _PAD, _PAD, _PAD, cv2.BORDER_REPLICATE)
+            tile = np.round(tile * 255).astype(np.uint8)
             self.atlas[s.y0 : s.y0 + rows + 2 * _PAD, s.x0 : s.x0 + cols + 2 * _PAD] = tile
         self._tables()
 
@@ -189,7 +190,8 @@ class Scene:
         mx = np.clip(mx, 0.0, self._max[sid, 0]) + self._off[sid, 0]
         my = np.clip(my, 0.0, self._max[sid, 1]) + self._off[sid, 1]
         mx, my = (m.reshape(shape).astype(np.float32) for m in (mx, my))
-        return cv2.remap(self.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rgb = cv2.remap(self.atlas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return rgb.astype(np.float32) * np.float32(1 / 255)
 
 
 @lru_cache(maxsize=4)

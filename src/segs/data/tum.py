@@ -18,7 +18,7 @@ from segs.data.files import (check_files_exist, check_increasing, image_shape, r
                              read_numeric, read_rgb, read_timestamped_paths, require_dir)
 from segs.data.frame import Camera, Frame
 from segs.data.poses import check_quaternions, interpolate_poses, poses_from_tq
-from segs.errors import DataError
+from segs.errors import ConfigError, DataError
 
 DEPTH_SCALE = 5000.0
 #: freiburg camera -> (fx, fy, cx, cy), distortion (k1, k2, p1, p2, k3), from the TUM website.
@@ -129,9 +129,9 @@ class TumSequence(ReaderSequence):
             self.gt_poses = interpolate_poses(gt_times, gt, self.timestamps, max_difference)
 
     def _calibrate(self, intrinsics, distortion, freiburg, downscale) -> None:
-        preset = FREIBURG.get(freiburg or freiburg_of(self.root))
         if freiburg is not None and freiburg not in FREIBURG:
-            raise DataError(f"{self.root}: freiburg must be 1, 2 or 3, got {freiburg!r}")
+            raise ConfigError(f"freiburg must be 1, 2 or 3, got {freiburg!r}")
+        preset = FREIBURG.get(freiburg or freiburg_of(self.root))
         k = numbers(intrinsics, (4,), "intrinsics")
         if k is None and preset is None:
             raise DataError(f"{self.root}: cannot tell the freiburg camera from the folder name; "
