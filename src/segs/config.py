@@ -44,9 +44,30 @@ _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("data.downscale", lambda v: isinstance(v, (int, float)) and v >= 1, "a number >= 1"),
     ("camera.sensor", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
     ("raster.backend", lambda v: v in ("auto", "torch", "cpu", "cuda"), "one of auto, torch, cpu, cuda"),
-    ("callbacks.slam_bridge.frames_per_step", lambda v: isinstance(v, (int, float)) and v > 0, "a number > 0"),
+    ("callbacks.slam_bridge.frames_per_step", lambda v: v is None or (isinstance(v, (int, float)) and v > 0), "null or a number > 0"),
+    ("callbacks.slam_bridge.feed_until", lambda v: isinstance(v, (int, float)) and 0 < v <= 1, "a fraction in (0, 1]"),
     ("callbacks.slam_bridge.min_initial_keyframes", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
 ]
+
+
+def instantiate(node, *args, **kwargs):
+    """hydra.utils.instantiate, with a user-input error raised inside a target re-raised as is.
+
+    Hydra wraps every exception of a target in InstantiationException; a UserInputError (bad
+    data path, out-of-range value) must reach the user as its own one-line message.
+    """
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate as hydra_instantiate
+
+    try:
+        return hydra_instantiate(node, *args, **kwargs)
+    except InstantiationException as err:
+        cause = err.__cause__
+        while cause is not None and not isinstance(cause, UserInputError):
+            cause = cause.__cause__
+        if cause is not None:
+            raise cause from None
+        raise
 
 
 def validate(cfg: DictConfig) -> None:

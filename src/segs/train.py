@@ -13,12 +13,11 @@ from pathlib import Path
 import hydra
 import lightning as L
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import SlamBridge, save_atomic
-from segs.config import user_errors_exit, validate
+from segs.config import instantiate, user_errors_exit, validate
 from segs.errors import DataError
 from segs.evaluation import evaluate
 from segs.modules.mapping import MappingModule

@@ -25,16 +25,19 @@ log = logging.getLogger(__name__)
 class SlamBridge(L.Callback):
     """Plays the SLAM thread beside training.
 
-    frames_per_step: frames fed to the frontend per training step once mapping runs.
+    feed_until: fraction of trainer.max_steps by which every frame has been fed to the frontend
+        (the frames after the initial keyframes are spread evenly over those steps), as if the
+        camera streamed in real time beside training; frames_per_step, when set, replaces it.
     min_initial_keyframes: mapping starts when the frontend has made this many keyframes.
     holdout_every: frames with index % n == 0 never become training views (0 = off).
     """
 
-    def __init__(self, sequence: Sequence, frontend: Frontend, frames_per_step: float = 0.1,
-                 min_initial_keyframes: int = 10, holdout_every: int = 0, progress: bool = True,
-                 cache_frames: int = 64):  # fmt: skip
+    def __init__(self, sequence: Sequence, frontend: Frontend, feed_until: float = 0.2,
+                 frames_per_step: float | None = None, min_initial_keyframes: int = 10,
+                 holdout_every: int = 0, progress: bool = True, cache_frames: int = 64):  # fmt: skip
         self.sequence, self.frontend = sequence, frontend
-        self.frames_per_step, self.min_initial_keyframes = frames_per_step, min_initial_keyframes
+        self.feed_until, self.frames_per_step = feed_until, frames_per_step
+        self.min_initial_keyframes = min_initial_keyframes
         self.holdout_every, self.progress = holdout_every, progress
         self.cursor = 0  # next frame index to feed
         self.credit = 0.0
@@ -60,6 +63,9 @@ class SlamBridge(L.Callback):
         bar.close()
         if self.cursor >= len(self.sequence):
             update = update.merge(self._finish())
+        if self.frames_per_step is None:
+            steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
+            self.frames_per_step = (len(self.sequence) - self.cursor) / steps
         self._push(update, pl_module)
         if len(pl_module.store) == 0:
             raise RuntimeError("the frontend produced no training keyframe; nothing to map")
@@ -167,6 +173,7 @@ class SlamBridge(L.Callback):
         return {
             "cursor": self.cursor,
             "credit": self.credit,
+            "frames_per_step": self.frames_per_step,
             "finished": self.finished,
             "trained_frames": dict(self.trained_frames),
             "held_out_keyframes": list(self.held_out_keyframes),
@@ -175,6 +182,7 @@ class SlamBridge(L.Callback):
 
     def load_state_dict(self, state: dict) -> None:
         self.cursor, self.credit, self.finished = state["cursor"], state["credit"], state["finished"]
+        self.frames_per_step = state["frames_per_step"]
         self.trained_frames = {int(k): int(v) for k, v in state["trained_frames"].items()}
         self.held_out_keyframes = list(state["held_out_keyframes"])
         self.frontend.load_state_dict(state["frontend"])

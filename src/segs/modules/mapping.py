@@ -38,6 +38,7 @@ class MappingModule(L.LightningModule):
         self.min_scene_extent = min_scene_extent
         self.adam_eps = adam_eps
         self.iteration_ms: list[float] = []
+        self.loss_history: list[float] = []
 
     # -- bridge interface -----------------------------------------------------------------------
     def add_keyframes(self, keyframes: list[Keyframe]) -> None:
@@ -116,6 +117,7 @@ class MappingModule(L.LightningModule):
         opt.zero_grad(set_to_none=True)
         edits = self.model.maintain(step + 1, opt)
         self.iteration_ms.append((time.perf_counter() - t0) * 1000.0)
+        self.loss_history.append(float(terms["total"].detach()))
         self._log_step(terms, out.image.detach(), gt, edits)
         return terms["total"].detach()
 

@@ -1,0 +1,35 @@
+"""Shared fixtures: composed configs for tiny CPU runs."""
+from __future__ import annotations
+
+import pytest
+
+from segs.config import compose
+
+TINY = [
+    "+experiment=synthetic",
+    "slam=known_poses",
+    "data.n_frames=14",
+    "data.width=96",
+    "data.height=72",
+    "trainer.max_steps=40",
+    "logger=none",
+    "callbacks.slam_bridge.progress=false",
+    "callbacks.slam_bridge.min_initial_keyframes=3",
+    "~callbacks.progress_bar",
+    "callbacks.image_logger.every_n_steps=0",
+    "slam.keyframe_every=3",
+    "slam.n_features=300",
+    "eval.holdout_every=3",
+    "eval.save_renders=2",
+    "trainer.enable_progress_bar=false",
+]
+
+
+@pytest.fixture
+def tiny_cfg(tmp_path):
+    """A factory: compose the tiny synthetic run (known poses) with extra overrides."""
+
+    def make(*overrides: str, out=None):
+        return compose(TINY + list(overrides), output_dir=str(out or tmp_path / "run"))
+
+    return make

@@ -1,0 +1,94 @@
+"""Every experiment, ablation and config group composes and instantiates its parts."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from segs.config import CONF_DIR, compose, instantiate, validate
+from segs.errors import ConfigError
+
+EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
+ABLATIONS = sorted(p.stem for p in (CONF_DIR / "ablation").glob("*.yaml"))
+
+
+def test_the_issue_lists_are_all_there():
+    assert set(EXPERIMENTS) >= {"sample", "tum_rgbd", "tum_mono", "replica_rgbd", "replica_mono", "euroc_stereo", "synthetic"}
+    assert set(ABLATIONS) >= {"no_fpr", "no_afme", "no_fpr_afme", "plain_3dgs", "ae", "sfr", "fpr_low", "fpr_low_high",
+                              "fpr_scales_1", "fpr_scales_2", "fpr_scales_4"}  # fmt: skip
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_experiment_composes(experiment, tmp_path):
+    cfg = compose([f"+experiment={experiment}"], output_dir=str(tmp_path))
+    validate(cfg)
+    assert cfg.model._target_.endswith("SegsModel")
+    assert cfg.slam._target_ and cfg.data._target_
+    assert cfg.camera.sensor in ("mono", "stereo", "rgbd") and cfg.data.sensor == cfg.camera.sensor
+
+
+@pytest.mark.parametrize("ablation", ABLATIONS)
+def test_ablation_composes_and_instantiates_its_model(ablation, tmp_path):
+    cfg = compose(["+experiment=sample", f"+ablation={ablation}"], output_dir=str(tmp_path))
+    model = instantiate(cfg.model)
+    assert len(list(model.parameters())) > 0
+
+
+def test_camera_group_overrides_the_experiment(tmp_path):
+    cfg = compose(["+experiment=tum_rgbd", "camera=mono"], output_dir=str(tmp_path))
+    assert cfg.data.sensor == "mono" and cfg.camera.ate_align == "sim3"
+
+
+@pytest.mark.parametrize("group,option", [(g.name, p.stem) for g in sorted(CONF_DIR.iterdir()) if g.is_dir()
+                                          and g.name not in ("experiment", "ablation", "hparams_search", "sweep")
+                                          for p in sorted(g.glob("*.yaml"))])  # fmt: skip
+def test_every_group_option_composes(group, option, tmp_path):
+    compose([f"{group}={option}"], output_dir=str(tmp_path))
+
+
+def test_sample_data_and_frontends_instantiate(tmp_path):
+    cfg = compose([], output_dir=str(tmp_path))
+    seq = instantiate(cfg.data)
+    assert len(seq) == 58 and seq.camera.width == 320
+    for slam in ("known_poses", "orb"):
+        c = compose([f"slam={slam}"], output_dir=str(tmp_path))
+        frontend = instantiate(c.slam)(camera=seq.camera, sensor=seq.sensor)
+        assert hasattr(frontend, "process")
+
+
+@pytest.mark.parametrize("key,value", [("trainer.max_steps", 0), ("data.downscale", 0.5), ("seed", -1),
+                                       ("raster.backend", "opengl"), ("callbacks.slam_bridge.feed_until", 2.0)])  # fmt: skip
+def test_out_of_range_values_are_rejected_naming_the_key(key, value, tmp_path):
+    cfg = compose([f"{key}={value}"], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        validate(cfg)
+
+
+@pytest.mark.parametrize("override,needle", [("model.voxel_size=-0.01", "model.voxel_size"), ("model.k=0", "model.k"),
+                                             ("model.lr.features=-1", "model.lr.features")])  # fmt: skip
+def test_model_rejects_out_of_range_values(override, needle, tmp_path):
+    cfg = compose([override], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
+        instantiate(cfg.model)
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "segs.train", *args], cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def test_cli_unknown_experiment_fails_with_one_clear_line(tmp_path):
+    r = _cli("+experiment=does_not_exist", f"paths.log_dir={tmp_path}", cwd=tmp_path)
+    assert r.returncode != 0
+    assert "does_not_exist" in r.stderr and "Traceback" not in r.stderr
+    assert not list(tmp_path.rglob("metrics.json"))
+
+
+def test_cli_out_of_range_value_exits_nonzero_without_traceback(tmp_path):
+    r = _cli("model.voxel_size=-1", f"paths.log_dir={tmp_path}", cwd=tmp_path)
+    assert r.returncode == 2
+    lines = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "model.voxel_size" in lines[0]
+    assert "Traceback" not in r.stderr
+    assert not list(tmp_path.rglob("metrics.json"))
