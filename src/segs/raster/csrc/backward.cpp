@@ -1,0 +1,182 @@
+// Backward pass: back-to-front recomputation per tile, from the final transmittance.
+//
+// For the Gaussians i accepted by a pixel (T_1 = 1, T_{i+1} = T_i (1 - alpha_i)):
+//   image = sum c_i alpha_i T_i + T_final bg,  depth = sum z_i alpha_i T_i,  alpha = 1 - T_final
+//   d image / d alpha_i = T_i (c_i - Y_i) - T_final / (1 - alpha_i) bg
+//   d alpha / d alpha_i = T_final / (1 - alpha_i)
+// with Y_i the (normalised) colour behind i: Y_n = 0, Y_{i-1} = alpha_i c_i + (1 - alpha_i) Y_i.
+// Each thread sums per-Gaussian gradients in its own buffer; buffers are reduced at the end.
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "raster.h"
+#include "simd.h"
+
+namespace segs_raster {
+namespace {
+
+struct TileGrad {
+  alignas(64) float T[TILE_PIX];   // transmittance behind the current Gaussian
+  alignas(64) float yr[TILE_PIX];  // colour / depth behind it (normalised)
+  alignas(64) float yg[TILE_PIX];
+  alignas(64) float yb[TILE_PIX];
+  alignas(64) float yd[TILE_PIX];
+  alignas(64) float gr[TILE_PIX];  // d loss / d image, depth, and the T_final term
+  alignas(64) float gg[TILE_PIX];
+  alignas(64) float gb[TILE_PIX];
+  alignas(64) float gd[TILE_PIX];
+  alignas(64) float gt[TILE_PIX];  // T_final (g_alpha - g_image . bg)
+  alignas(64) int32_t last[TILE_PIX];
+  vf acc[N_GRAD];
+  int32_t span_last[2 * TILE];  // per span (bit 16 h + r): largest n_contrib of its pixels
+  int32_t order[2 * TILE];      // span bits by decreasing span_last
+};
+
+constexpr int PREFETCH = 8;  // list entries ahead: Packed records are scattered in memory
+
+inline int span_offset(int bit) { return (bit & (TILE - 1)) * TILE + (bit >> 4) * SPAN; }
+
+// Load the tile's pixel state; returns the background gradient contribution in bg[3].
+void load_tile(const State& st, const BackwardIn& in, int tile, TileGrad& s, double bg[3]) {
+  const int x0 = (tile % st.tiles_x) * TILE, y0 = (tile / st.tiles_x) * TILE;
+  const size_t o = static_cast<size_t>(tile) * TILE_PIX;
+  for (int i = 0; i < TILE_PIX; ++i) {
+    const int x = x0 + i % TILE, y = y0 + i / TILE;
+    const bool inside = x < st.width && y < st.height;
+    const size_t pix = inside ? static_cast<size_t>(y) * st.width + x : 0;
+    const float T = st.final_T[o + i];
+    s.T[i] = T;
+    s.yr[i] = s.yg[i] = s.yb[i] = s.yd[i] = 0.f;
+    s.gr[i] = inside ? in.g_image[3 * pix] : 0.f;
+    s.gg[i] = inside ? in.g_image[3 * pix + 1] : 0.f;
+    s.gb[i] = inside ? in.g_image[3 * pix + 2] : 0.f;
+    s.gd[i] = inside ? in.g_depth[pix] : 0.f;
+    const float ga = inside ? in.g_alpha[pix] : 0.f;
+    s.gt[i] = T * (ga - (s.gr[i] * st.bg[0] + s.gg[i] * st.bg[1] + s.gb[i] * st.bg[2]));
+    s.last[i] = inside ? st.n_contrib[o + i] : 0;
+    bg[0] += T * s.gr[i];
+    bg[1] += T * s.gg[i];
+    bg[2] += T * s.gb[i];
+  }
+  for (int bit = 0; bit < 2 * TILE; ++bit) {
+    const int32_t* l = s.last + span_offset(bit);
+    s.span_last[bit] = *std::max_element(l, l + SPAN);
+    s.order[bit] = bit;
+  }
+  std::sort(s.order, s.order + 2 * TILE,
+            [&s](int a, int b) { return s.span_last[a] > s.span_last[b]; });
+}
+
+// Undo Gaussian `p` (list position kk, 1-based) on the span at offset o; add its gradients.
+inline void backprop_span(const Packed& p, int32_t kk, vf px, float dy, TileGrad& s, int o) {
+  const vf dx = p.u - px;
+  const vf sg = span_sigma(p, px, dy);
+  const vf e = vexp(-sg);
+  const vf raw = p.opacity * e;
+  const vf al = clamp_alpha(raw);
+  const vf zero = splat<vf>(0.f);
+  const vi valid = (splat_i(kk) <= load_i(s.last + o)) & (sg >= zero) &
+                   (al >= splat<vf>(ALPHA_MIN));
+  const vf om = 1.f - al, inv = 1.f / om;
+  const vf T = load(s.T + o);
+  const vf Ti = valid ? T * inv : T;
+  const vf w = valid ? al * Ti : zero;
+  const vf gr = load(s.gr + o), gg = load(s.gg + o), gb = load(s.gb + o), gd = load(s.gd + o);
+  const vf yr = load(s.yr + o), yg = load(s.yg + o), yb = load(s.yb + o), yd = load(s.yd + o);
+  const vf ga = Ti * ((p.r - yr) * gr + (p.g - yg) * gg + (p.bl - yb) * gb + (p.z - yd) * gd) +
+                load(s.gt + o) * inv;
+  const vi free = valid & (raw <= splat<vf>(ALPHA_MAX));
+  const vf gsig = free ? -al * ga : zero;
+  s.acc[0] += gsig * (dx * (2.f * p.ha) + p.b * dy);
+  s.acc[1] += gsig * (dx * p.b + 2.f * p.hc * dy);
+  s.acc[2] += gsig * dx * dx * 0.5f;
+  s.acc[3] += gsig * dx * dy;
+  s.acc[4] += gsig * (0.5f * dy * dy);
+  s.acc[5] += free ? e * ga : zero;
+  s.acc[6] += w * gr;
+  s.acc[7] += w * gg;
+  s.acc[8] += w * gb;
+  s.acc[9] += w * gd;
+  store(s.yr + o, valid ? al * p.r + om * yr : yr);
+  store(s.yg + o, valid ? al * p.g + om * yg : yg);
+  store(s.yb + o, valid ? al * p.bl + om * yb : yb);
+  store(s.yd + o, valid ? al * p.z + om * yd : yd);
+  store(s.T + o, Ti);
+}
+
+void backprop_tile(const State& st, int tile, TileGrad& s, float* grad) {
+  const int x0 = (tile % st.tiles_x) * TILE, y0 = (tile / st.tiles_x) * TILE;
+  const vf px[2] = {LANE + (x0 + 0.5f), LANE + (x0 + SPAN + 0.5f)};
+  const int32_t start = st.tile_start[tile];
+  uint32_t active = 0;  // spans with a pixel whose n_contrib >= kk
+  int next = 0;
+  for (int32_t kk = s.span_last[s.order[0]]; kk >= 1; --kk) {
+    while (next < 2 * TILE && s.span_last[s.order[next]] >= kk) active |= 1u << s.order[next++];
+    if (kk > PREFETCH) __builtin_prefetch(&st.gs[st.isect[start + kk - 1 - PREFETCH]]);
+    const int32_t pos = st.isect[start + kk - 1];
+    const Packed& p = st.gs[pos];
+    uint32_t m = span_mask(p, x0, y0) & active;
+    if (!m) continue;
+    for (vf& v : s.acc) v = splat<vf>(0.f);
+    for (; m; m &= m - 1) {
+      const int bit = __builtin_ctz(m);
+      const float dy = p.v - (static_cast<float>(y0 + (bit & (TILE - 1))) + 0.5f);
+      backprop_span(p, kk, px[bit >> 4], dy, s, span_offset(bit));
+    }
+    float* dst = grad + static_cast<size_t>(pos) * N_GRAD;
+    for (int q = 0; q < N_GRAD; ++q) dst[q] += hsum(s.acc[q]);
+  }
+}
+
+// Sum the per-thread buffers and scatter to the caller's per-Gaussian gradient arrays.
+void scatter(const State& st, const std::vector<float>& bufs, int nt, const BackwardOut& out,
+             int threads) {
+  const int m = static_cast<int>(st.gs.size());
+  const size_t stride = static_cast<size_t>(m) * N_GRAD;
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int pos = 0; pos < m; ++pos) {
+    float g[N_GRAD] = {0.f};
+    for (int t = 0; t < nt; ++t)
+      for (int q = 0; q < N_GRAD; ++q) g[q] += bufs[t * stride + pos * N_GRAD + q];
+    const int id = st.gs[pos].id;
+    out.means2d[2 * id] = g[0];
+    out.means2d[2 * id + 1] = g[1];
+    for (int q = 0; q < 3; ++q) out.conics[3 * id + q] = g[2 + q];
+    out.opacities[id] = g[5];
+    for (int q = 0; q < 3; ++q) out.colors[3 * id + q] = g[6 + q];
+    out.depths[id] = g[9];
+  }
+}
+
+}  // namespace
+
+void backward(const State& st, const BackwardIn& in, const BackwardOut& out, int threads) {
+  const int n_tiles = st.n_tiles();
+  const size_t stride = st.gs.size() * N_GRAD;
+  threads = std::max(1, std::min(threads, n_tiles));
+  std::vector<float> bufs(stride * threads, 0.f);
+  double bg[3] = {0.0, 0.0, 0.0};
+  int used = 1;
+#pragma omp parallel num_threads(threads)
+  {
+    TileGrad* s = new TileGrad;
+    double bg_local[3] = {0.0, 0.0, 0.0};
+    const int t = omp_get_thread_num();
+#pragma omp single
+    used = omp_get_num_threads();
+#pragma omp for schedule(dynamic, 1)
+    for (int tile = 0; tile < n_tiles; ++tile) {
+      load_tile(st, in, tile, *s, bg_local);
+      backprop_tile(st, tile, *s, bufs.data() + stride * t);
+    }
+#pragma omp critical
+    for (int c = 0; c < 3; ++c) bg[c] += bg_local[c];
+    delete s;
+  }
+  for (int c = 0; c < 3; ++c) out.background[c] = static_cast<float>(bg[c]);
+  scatter(st, bufs, used, out, threads);
+}
+
+}  // namespace segs_raster
