@@ -70,6 +70,24 @@ def instantiate(node, *args, **kwargs):
         raise
 
 
+def make_sequence(data_cfg: DictConfig):
+    """Instantiate the `data` node; an optional `data.stress` node wraps the sequence.
+
+    data.stress (issue "stability"): {kind, level, ...} passed to segs.data.stress.apply_stress.
+    """
+    node = OmegaConf.to_container(data_cfg, resolve=True)
+    stress = node.pop("stress", None)
+    sequence = instantiate(node)
+    if stress:
+        from segs.data.stress import apply_stress
+
+        try:
+            sequence = apply_stress(sequence, **stress)
+        except TypeError as err:
+            raise ConfigError(f"data.stress: {err}") from None
+    return sequence
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise ConfigError naming the first out-of-range key; the model checks its own keys."""
     for key, ok, expected in _CHECKS:

@@ -53,7 +53,8 @@ def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
     cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
 
 
-def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int, out: Path, progress: bool = True) -> dict:
+def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int, out: Path,
+                      progress: bool = True, active_threshold: float = 0.005) -> dict:  # fmt: skip
     """Render every test frame at its estimated pose; returns the mean metrics and writes renders."""
     lpips = make_lpips(lpips_weights)
     keep = set(np.asarray(test)[np.linspace(0, len(test) - 1, save_renders).round().astype(int)]) if test and save_renders else set()
@@ -63,7 +64,9 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
         frame = sequence[idx]
         gt = torch.from_numpy(np.ascontiguousarray(frame.rgb))
         render = module.render_image(trajectory[idx], frame.camera)["image"]
-        row = {"frame": idx, "psnr": psnr(render, gt), "ssim": ssim(render, gt), "lpips": lpips(render, gt) if lpips else None}
+        view = View(torch.as_tensor(trajectory[idx], dtype=torch.float32), frame.camera)
+        row = {"frame": idx, "psnr": psnr(render, gt), "ssim": ssim(render, gt), "lpips": lpips(render, gt) if lpips else None,
+               "active": module.model.count_active(view, active_threshold)}  # fmt: skip
         rows.append(row)
         if idx in keep:
             _save_pair(out / "renders" / f"test_{idx:05d}.png", render, frame.rgb)
@@ -73,7 +76,8 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
             lp = "" if r["lpips"] is None else f"{r['lpips']:.5f}"
             f.write(f"{r['frame']},{r['psnr']:.4f},{r['ssim']:.5f},{lp}\n")
     mean = lambda k: float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None  # noqa: E731
-    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows)}
+    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows),
+            "active_gaussians": mean("active")}  # fmt: skip
 
 
 def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict) -> dict:
@@ -82,7 +86,8 @@ def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict) -> dic
     frontend = bridge.frontend
     trajectory = frontend.trajectory()
     test = bridge.test_frames()
-    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)), out)
+    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)),
+                               out, bool(eval_cfg.get("progress", True)), float(eval_cfg.get("active_opacity", 0.005)))  # fmt: skip
     idx, c2w = estimated_c2w(trajectory)
     write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
     ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))

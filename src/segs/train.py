@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import SlamBridge, save_atomic
-from segs.config import instantiate, user_errors_exit, validate
+from segs.config import instantiate, make_sequence, user_errors_exit, validate
 from segs.errors import DataError
 from segs.evaluation import evaluate
 from segs.modules.mapping import MappingModule
@@ -41,7 +41,7 @@ class StepDataset(Dataset):
 def build(cfg: DictConfig):
     """Instantiate sequence, frontend, module, bridge and trainer from the composed config."""
     validate(cfg)
-    sequence = instantiate(cfg.data)
+    sequence = make_sequence(cfg.data)
     if len(sequence) == 0:
         raise DataError(f"data: the sequence at {cfg.data.get('root', '?')} has no frames")
     frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
@@ -61,7 +61,8 @@ def run(cfg: DictConfig) -> dict:
     sequence, frontend, module, bridge, trainer = build(cfg)
     loader = DataLoader(StepDataset(cfg.trainer.max_steps), batch_size=None, shuffle=False)
     t_fit = time.perf_counter()
-    trainer.fit(module, loader, ckpt_path=cfg.ckpt_path)
+    # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
+    trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
     fit_s = time.perf_counter() - t_fit
     if trainer.interrupted:
         raise SystemExit(130)

@@ -44,6 +44,7 @@ class PlainGaussians(SceneModel):
         densify: dict | None = None,
         total_steps: int = 30000,
         reference_steps: int = 30000,
+        budget_mb: float | None = None,
     ):
         super().__init__()
         lr = dict(lr or {})
@@ -60,6 +61,11 @@ class PlainGaussians(SceneModel):
         self.sh_degree, self.sh_increase_every = sh_degree, sh_increase_every
         self.lambda_dssim, self.lambda_depth = lambda_dssim, lambda_depth
         self.init_opacity, self.max_gaussians = init_opacity, max_gaussians
+        if budget_mb is not None:
+            if budget_mb <= 0:
+                raise ConfigError(f"model.budget_mb={budget_mb} is out of range: expected > 0 (MB) or null")
+            floats = 3 + 3 + 4 + 1 + 3 * (sh_degree + 1) ** 2  # means, scales, quats, opacity, SH
+            self.max_gaussians = min(max_gaussians, max(int(budget_mb * 1e6 / 4 // floats), 1))
         if total_steps <= 0 or reference_steps <= 0:
             raise ConfigError(f"model.total_steps={total_steps}, reference_steps={reference_steps}: expected > 0")
         self.lr, self.densify_cfg, self.total_steps = lr, d, total_steps
@@ -229,6 +235,11 @@ class PlainGaussians(SceneModel):
         self.gs.keep(keep, optimizer)
         for name in ("kf_tags", "grad_accum", "grad_count", "max_radii"):
             setattr(self, name, getattr(self, name)[keep])
+
+    @torch.no_grad()
+    def count_active(self, view: View, threshold: float = 0.005) -> int:
+        """Gaussians with opacity above threshold (view independent for plain 3D-GS)."""
+        return int((torch.sigmoid(self.gs["opacities"]) > threshold).sum())
 
     # -- bookkeeping ----------------------------------------------------------------------------
     def counts(self) -> dict[str, float]:

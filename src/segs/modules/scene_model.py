@@ -106,6 +106,10 @@ class SceneModel(nn.Module, abc.ABC):
         """Densify / prune / reset at this step; returns numbers to log."""
 
     @abc.abstractmethod
+    def count_active(self, view: View, threshold: float = 0.005) -> int:
+        """Gaussians of this view whose opacity exceeds threshold (compactness reporting)."""
+
+    @abc.abstractmethod
     def counts(self) -> dict[str, float]:
         """{"anchors", "gaussians", "params", "mb"} of the current model."""
 

@@ -42,7 +42,7 @@ class SegsModel(SceneModel):
                  voxel_size: float = 0.001, min_new_points: int = 10, max_anchors: int = 200_000,
                  appearance: dict | None = None, fpr: dict | None = None, loss: dict | None = None,
                  densify: dict | None = None, lr: dict | None = None, reference_steps: int = 30000,
-                 total_steps: int = 30000, frustum_margin: float = 0.15):  # fmt: skip
+                 total_steps: int = 30000, frustum_margin: float = 0.15, budget_mb: float | None = None):  # fmt: skip
         super().__init__()
         app = {"kind": "linear", "dim": 32, "hidden": 32, **dict(appearance or {})}
         self.fpr = {"enabled": True, "scales": 3, "mode": "high", "hp_ratio": 0.4, "lp_ratio": 0.1, "from_step": 5000, "until_step": 15000, **dict(fpr or {})}
@@ -57,6 +57,9 @@ class SegsModel(SceneModel):
         self.appearance = AppearanceEncoder(app["kind"], int(app["dim"]), int(app["hidden"]), int(app.get("max_views", 4096)))
         grow = {k_: v for k_, v in self.dcfg.items() if k_ not in ("stats_from", "grow_from", "until", "interval")}
         self.densifier = AnchorDensifier(k, voxel_size, max_anchors=max_anchors, **grow)
+        if budget_mb is not None:
+            _check("budget_mb", budget_mb > 0, budget_mb, "> 0 (MB) or null")
+            self.densifier.max_anchors = min(max_anchors, self.anchors_for_budget(budget_mb))
         self.register_buffer("kf_tags", torch.zeros(0, dtype=torch.int64))
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.last_rendered = 0
@@ -77,6 +80,18 @@ class SegsModel(SceneModel):
             _check(f"lr.{name}", v >= 0, v, ">= 0")
         for name, v in self.loss_w.items():
             _check(f"loss.{name}", v >= 0, v, ">= 0")
+
+    def anchors_for_budget(self, budget_mb: float) -> int:
+        """Largest anchor count whose model (anchors + decoders + embedding) fits in budget_mb."""
+        fixed = sum(p.numel() for p in self.parameters()) - len(self.field) * self.floats_per_anchor()
+        n = int((budget_mb * 1e6 / 4 - fixed) // self.floats_per_anchor())
+        if n < 1:
+            raise ConfigError(f"model.budget_mb={budget_mb} is smaller than the decoders alone ({fixed * 4 / 1e6:.3f} MB)")
+        return n
+
+    def floats_per_anchor(self) -> int:
+        """Stored floats per anchor: position, feature, k offsets, 6 log-scales."""
+        return 3 + self.field.feature_dim + 3 * self.field.k + 6
 
     def _at(self, step_ref: float) -> int:
         """A reference-run iteration number in this run's steps."""
@@ -184,6 +199,11 @@ class SegsModel(SceneModel):
         return out
 
     # -- bookkeeping ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def count_active(self, view: View, threshold: float = 0.005) -> int:
+        """Gaussians decoded for this view with opacity above threshold."""
+        return int((self.decode(view, self.total_steps).opacities > threshold).sum())
+
     def counts(self) -> dict[str, float]:
         n_params = sum(p.numel() for p in self.parameters())
         return {"anchors": len(self.field), "gaussians": len(self.field) * self.field.k, "rendered": self.last_rendered,
