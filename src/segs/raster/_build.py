@@ -105,13 +105,13 @@ def _compile(name: str, build_dir: Path) -> ModuleType:
 def load_extension() -> ModuleType:
     """The compiled kernels, building them on first use; raises BuildError saying why not."""
     global _module, _error
+    if os.environ.get("SEGS_RASTER_NO_CPU") == "1":
+        raise BuildError("disabled by SEGS_RASTER_NO_CPU=1")
     if _module is not None:
         return _module
     with _lock:
         if _module is not None:
             return _module
-        if os.environ.get("SEGS_RASTER_NO_CPU") == "1":
-            raise BuildError("disabled by SEGS_RASTER_NO_CPU=1")
         if _error is not None:
             raise BuildError(_error)
         name = build_name()
