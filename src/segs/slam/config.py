@@ -1,0 +1,106 @@
+"""Parameters of the ORB frontend, grouped as in conf/slam/orb.yaml (defaults = that file's)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+from segs.errors import ConfigError
+
+
+@dataclass
+class FeatureConfig:
+    n_features: int = 1500
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 20
+    min_fast_threshold: int = 7
+    cell_size: int = 30
+    oversample: float = 3.0
+    grid_cell: float = 16.0
+
+
+@dataclass
+class TrackingConfig:
+    rgbd_baseline: float = 0.08  # virtual stereo baseline of RGB-D (ORB-SLAM's bf / fx)
+    rgbd_depth_noise: float = 0.003  # RGB-D depth sigma = k z^2 (1/m); ORB-SLAM: 1 px disparity
+    close_depth_factor: float = 40.0  # "close" points: depth < factor * baseline (ORB-SLAM ThDepth)
+    max_depth: float = 10.0  # depths beyond are unknown
+    depth_edge_ratio: float = 0.05  # RGB-D: no depth where the 3x3 depth range exceeds this x depth
+    min_init_points: int = 500  # keypoints with depth to start an RGB-D / stereo map
+    window_motion: float = 15.0  # projection radius from the last frame, mono (x scale)
+    window_motion_stereo: float = 7.0  # idem, stereo / RGB-D
+    local_map_th: float = 1.0  # local-map projection radius factor (x 2.5 or 4 x scale)
+    local_kfs: int = 40  # keyframes in the local map
+    min_matches_motion: int = 20
+    min_inliers: int = 30  # local-map inliers to call a frame tracked
+    min_inliers_reloc: int = 50  # idem, during the frames after a relocalization
+    kf_max_gap: int = 15  # a keyframe at least every N frames (if c2 holds); authors: 15
+    kf_min_gap: int = 0  # and not sooner than this (the threaded mode also waits for mapping)
+    kf_ref_ratio: float = 0.9  # inliers / reference keyframe's points below this -> keyframe
+    kf_ref_ratio_mono: float = 0.9
+    kf_track_ratio: float = 0.5  # ... or below this share of the best count since the last keyframe
+    kf_close_tracked: int = 100  # stereo / RGB-D: need close points if fewer tracked ...
+    kf_close_untracked: int = 70  # ... and more than this untracked
+    rgbd_new_points: str = "all"  # "all": every unmatched keypoint with depth; "close": < ThDepth
+    reloc_candidates: int = 10
+    reloc_min_matches: int = 15
+    restart_after_lost: int = 0  # frames lost before a fresh map at the last pose (0: never)
+
+
+@dataclass
+class InitConfig:
+    min_matches: int = 100
+    min_parallax_deg: float = 1.0
+    min_triangulated: int = 50
+    max_frames: int = 30  # frames a reference may wait for its partner before it is replaced
+    homography_ratio: float = 0.40  # R_H = S_H / (S_H + S_F) above this -> homography
+
+
+@dataclass
+class MappingConfig:
+    triangulate_neighbors: int = 10  # covisible keyframes to triangulate with (mono: x2)
+    fuse_neighbors: int = 10
+    triangulate_ratio: float = 0.8
+    ba_window: int = 10  # optimised keyframes of local BA (new one + best covisible)
+    ba_fixed_max: int = 20  # keyframes held fixed around the window
+    ba_iterations: tuple = (5, 10)  # LM iterations before / after removing outliers
+    cull_points: bool = True
+    min_found_ratio: float = 0.25
+    cull_keyframes: bool = True
+    redundancy: float = 0.9  # keyframe culled if this share of its points is seen by >=3 others
+    cull_window: int = 30  # only among its best covisible keyframes
+
+
+@dataclass
+class LoopConfig:
+    enabled: bool = True
+    vocabulary: str | None = None  # .npz; None = the shipped one
+    min_kfs: int = 10  # keyframes in the map before loops are searched
+    consistency: int = 3  # consecutive consistent detections
+    min_matches: int = 20  # descriptor matches with a candidate
+    min_inliers: int = 20  # RANSAC inliers of the similarity
+    min_total: int = 40  # matches after guided search to accept the loop
+    covis_edges: int = 100  # essential graph: covisibility edges with this weight
+    pose_graph_iterations: int = 20
+    global_ba: bool = True
+    global_ba_iterations: int = 10
+    min_gap_kfs: int = 10  # a loop partner must be this many keyframes older
+
+
+GROUPS = {"features": FeatureConfig, "tracking": TrackingConfig, "init": InitConfig,
+          "mapping": MappingConfig, "loop": LoopConfig}
+
+
+def build(cls, values: Mapping[str, Any] | None, where: str):
+    """Dataclass `cls` from a mapping (dict or OmegaConf), unknown keys -> ConfigError."""
+    values = dict(values or {})
+    names = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise ConfigError(f"slam.{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(names)}")
+    out = {}
+    for k, v in values.items():
+        if hasattr(v, "__iter__") and not isinstance(v, (str, bytes)) and not hasattr(v, "items"):
+            v = tuple(v)
+        out[k] = v
+    return cls(**out)

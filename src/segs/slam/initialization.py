@@ -1,0 +1,160 @@
+"""Map initialization.
+
+RGB-D / stereo: one frame with enough keypoints with depth (back-projected; see `Tracker`).
+Monocular: two views. A reference frame waits for a partner; their ORB matches feed a homography
+and a fundamental matrix (OpenCV RANSAC); ORB-SLAM's symmetric transfer scores choose the model
+(R_H = S_H / (S_H + S_F) > 0.40 -> homography), the model's motion hypotheses are triangulated and
+the one with clearly most points in front of both cameras, small reprojection error and enough
+parallax wins. The scale is arbitrary (normalised later to a median depth of 1).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from segs.slam.config import InitConfig
+from segs.slam.frame import SlamFrame
+from segs.slam.matching import match_descriptors, rotation_consistent
+
+TH_H = 5.991  # chi2 2 dof
+TH_F = 3.841  # chi2 1 dof (point-to-line)
+
+
+@dataclass
+class TwoViewResult:
+    """w2c of the second view (the first is the identity), triangulated points [N,3] and the
+    keypoint indices [N] of each point in the reference and the current frame."""
+
+    w2c: np.ndarray
+    points: np.ndarray
+    idx_ref: np.ndarray
+    idx_cur: np.ndarray
+    model: str
+
+
+class MonoInitializer:
+    def __init__(self, cfg: InitConfig, K: np.ndarray, sigma2: np.ndarray, seed: int = 0):
+        self.cfg = cfg
+        self.K = K
+        self.sigma2 = sigma2
+        self.seed = seed
+        self.ref: SlamFrame | None = None
+
+    def reset(self) -> None:
+        self.ref = None
+
+    def try_initialize(self, frame: SlamFrame) -> TwoViewResult | None:
+        """Feed a frame; returns a result once two views give a sound reconstruction."""
+        if self.ref is None or len(self.ref) < self.cfg.min_matches \
+                or frame.index - self.ref.index > self.cfg.max_frames:
+            self.ref = frame if len(frame) >= self.cfg.min_matches else None
+            return None
+        i1, i2 = match_descriptors(self.ref.kp.desc, frame.kp.desc, ratio=0.9, max_dist=50)
+        keep = rotation_consistent(self.ref.kp.angle[i1], frame.kp.angle[i2])
+        i1, i2 = i1[keep], i2[keep]
+        if len(i1) < self.cfg.min_matches:
+            if len(i1) < self.cfg.min_matches // 2:
+                self.ref = frame
+            return None
+        res = self.reconstruct(self.ref.kp.uv[i1], frame.kp.uv[i2], self.sigma2[self.ref.kp.octave[i1]])
+        if res is None:
+            return None
+        w2c, X, good = res
+        return TwoViewResult(w2c, X[good], i1[good], i2[good], "")
+
+    # ------------------------------------------------------------------ two-view geometry
+    def reconstruct(self, x1: np.ndarray, x2: np.ndarray, sig2: np.ndarray):
+        """Pixel matches x1, x2 [N,2] -> (w2c of view 2, points [N,3], good mask [N]) or None."""
+        cv2.setRNGSeed(self.seed)
+        H, mh = cv2.findHomography(x1, x2, cv2.RANSAC, 2.0 * np.sqrt(TH_H), maxIters=500, confidence=0.999)
+        F, mf = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, 2.0 * np.sqrt(TH_F), 0.999, 500)
+        sh = self._score_h(H, x1, x2, sig2) if H is not None else 0.0
+        sf = self._score_f(F[:3] if F is not None else None, x1, x2, sig2) if F is not None else 0.0
+        if sh + sf <= 0:
+            return None
+        rh = sh / (sh + sf)
+        if rh > self.cfg.homography_ratio:
+            hyps = self._hyps_h(H)
+            inl = mh.ravel().astype(bool)
+        else:
+            hyps = self._hyps_f(F[:3])
+            inl = mf.ravel().astype(bool)
+        return self._select(hyps, x1, x2, sig2, inl)
+
+    def _score_h(self, H, x1, x2, sig2) -> float:
+        inv = 1.0 / sig2
+        p2 = cv2.perspectiveTransform(x1[None].astype(np.float64), H)[0]
+        try:
+            Hi = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return 0.0
+        p1 = cv2.perspectiveTransform(x2[None].astype(np.float64), Hi)[0]
+        c1 = ((p2 - x2) ** 2).sum(1) * inv
+        c2 = ((p1 - x1) ** 2).sum(1) * inv
+        ok = (c1 < TH_H) & (c2 < TH_H)
+        return float(((TH_H - c1) + (TH_H - c2))[ok].sum())
+
+    def _score_f(self, F, x1, x2, sig2) -> float:
+        inv = 1.0 / sig2
+        h1 = np.c_[x1, np.ones(len(x1))]
+        h2 = np.c_[x2, np.ones(len(x2))]
+        l2 = h1 @ F.T
+        l1 = h2 @ F
+        n2 = (l2 * h2).sum(1)
+        d2 = n2 ** 2 / np.maximum(l2[:, 0] ** 2 + l2[:, 1] ** 2, 1e-12) * inv
+        d1 = n2 ** 2 / np.maximum(l1[:, 0] ** 2 + l1[:, 1] ** 2, 1e-12) * inv
+        ok = (d1 < TH_F) & (d2 < TH_F)
+        return float(((TH_H - d1) + (TH_H - d2))[ok].sum())
+
+    def _hyps_h(self, H) -> list[tuple[np.ndarray, np.ndarray]]:
+        n, Rs, ts, _ = cv2.decomposeHomographyMat(H, self.K)
+        return [(Rs[i], ts[i].ravel()) for i in range(n)]
+
+    def _hyps_f(self, F) -> list[tuple[np.ndarray, np.ndarray]]:
+        E = self.K.T @ F @ self.K
+        R1, R2, t = cv2.decomposeEssentialMat(E)
+        t = t.ravel()
+        return [(R1, t), (R1, -t), (R2, t), (R2, -t)]
+
+    def _select(self, hyps, x1, x2, sig2, inl):
+        K = self.K
+        P1 = K @ np.c_[np.eye(3), np.zeros(3)]
+        results = []
+        for R, t in hyps:
+            if np.linalg.norm(t) < 1e-9:
+                continue
+            t = t / np.linalg.norm(t)
+            P2 = K @ np.c_[R, t]
+            Xh = cv2.triangulatePoints(P1, P2, x1.T.astype(np.float64), x2.T.astype(np.float64))
+            X = (Xh[:3] / np.where(np.abs(Xh[3]) < 1e-12, 1e-12, Xh[3])).T
+            X2 = X @ R.T + t
+            z1, z2 = X[:, 2], X2[:, 2]
+            e1 = ((self._proj(X) - x1) ** 2).sum(1)
+            e2 = ((self._proj(X2) - x2) ** 2).sum(1)
+            c2 = -R.T @ t
+            r1 = X / np.linalg.norm(X, axis=1, keepdims=True).clip(1e-12)
+            r2 = (X - c2) / np.linalg.norm(X - c2, axis=1, keepdims=True).clip(1e-12)
+            cosp = (r1 * r2).sum(1)
+            good = inl & np.isfinite(X).all(1) & (z1 > 0) & (z2 > 0) & (e1 < 4 * sig2) & (e2 < 4 * sig2) \
+                & (cosp < 0.99998)
+            par = np.degrees(np.arccos(np.clip(np.sort(cosp[good])[min(50, good.sum() - 1)], -1, 1))) \
+                if good.sum() else 0.0
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, t
+            results.append((int(good.sum()), par, T, X, good))
+        if not results:
+            return None
+        results.sort(key=lambda r: -r[0])
+        best = results[0]
+        n_inl = int(inl.sum())
+        min_good = max(int(0.9 * n_inl), self.cfg.min_triangulated)
+        similar = sum(1 for r in results if r[0] > 0.7 * best[0])
+        if best[0] < min_good or similar > 1 or best[1] < self.cfg.min_parallax_deg:
+            return None
+        return best[2], best[3], best[4]
+
+    def _proj(self, X):
+        z = np.where(np.abs(X[:, 2]) < 1e-12, 1e-12, X[:, 2])
+        return np.stack([self.K[0, 0] * X[:, 0] / z + self.K[0, 2], self.K[1, 1] * X[:, 1] / z + self.K[1, 2]], 1)

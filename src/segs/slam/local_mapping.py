@@ -1,0 +1,401 @@
+"""Local mapping (ORB-SLAM's LocalMapping thread) for one new keyframe at a time.
+
+process(kf): bag of words + observations of the tracked points + covisibility; culling of recent
+map points; new points by triangulation with the best covisible keyframes (epipolar-guided ORB
+matching, parallax / reprojection / scale checks; stereo and RGB-D use the keypoint depth when the
+rays are too parallel); fusion of duplicates with the neighbours; local bundle adjustment (gtsam)
+over the keyframe and its best covisible ones, the others that see those points fixed; redundant
+keyframe culling. Points become "mature" (and reach the mapper) once they survive the culling.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
+from segs.slam.map import KeyFrame
+from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
+from segs.slam.features import hamming_pairs
+from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, Observations, reproj_chi2
+
+if TYPE_CHECKING:
+    from segs.slam.orb import OrbFrontend as SlamSystem
+
+
+class LocalMapper:
+    def __init__(self, system: "SlamSystem"):
+        self.sys = system
+        self.cfg = system.cfg.mapping
+        self.recent: list[int] = []
+        self.ba_times: list[float] = []
+
+    def add_recent(self, pids: np.ndarray) -> None:
+        self.recent.extend(int(p) for p in pids)
+
+    def register_initial(self, kfs: list[KeyFrame], pids: np.ndarray) -> None:
+        """Monocular initial map: keyframes already connected; words + database only."""
+        for kf in kfs:
+            self.sys.index_keyframe(kf)
+        self.add_recent(pids)
+
+    # ------------------------------------------------------------------ main step
+    def process(self, kf: KeyFrame) -> None:
+        m = self.sys.map
+        with m.lock:
+            if kf.bad:
+                return
+            self._process_new(kf)
+            if self.cfg.cull_points:
+                self._cull_recent(kf)
+            self._triangulate(kf)
+            self._fuse(kf)
+        self.local_ba(kf)
+        with m.lock:
+            if self.cfg.cull_keyframes:
+                self._cull_keyframes(kf)
+
+    def _process_new(self, kf: KeyFrame) -> None:
+        m = self.sys.map
+        idx = np.flatnonzero(kf.points >= 0)
+        for i, p in zip(idx.tolist(), kf.points[idx].tolist()):
+            live = m.live(p)
+            if live < 0:
+                kf.points[i] = -1
+                continue
+            if kf.kf_id in m.obs[live]:
+                if m.obs[live][kf.kf_id] != i:
+                    kf.points[i] = -1
+                continue
+            m.add_obs(live, kf, i)
+        _, pids = m.kf_point_ids(kf)
+        m.update_geometry(pids)
+        m.update_descriptors(pids)
+        m.update_connections(kf)
+        self.sys.index_keyframe(kf)
+
+    def _cull_recent(self, kf: KeyFrame) -> None:
+        m = self.sys.map
+        th_obs = 2 if self.sys.sensor == "mono" else 3
+        keep, mature = [], []
+        for p in self.recent:
+            if not m.valid[p]:
+                continue
+            age = kf.kf_id - m.first_kf[p]
+            if m.found[p] / max(m.visible[p], 1) < self.cfg.min_found_ratio:
+                m.set_point_bad(p)
+            elif age >= 2 and m.n_obs[p] <= th_obs:
+                m.set_point_bad(p)
+            elif age >= 3:
+                mature.append(p)
+            else:
+                keep.append(p)
+        self.recent = keep
+        self.sys.emit_points(np.array(mature, np.int64))
+
+    def flush_recent(self) -> None:
+        """End of sequence: every surviving recent point is emitted."""
+        m = self.sys.map
+        self.sys.emit_points(np.array([p for p in self.recent if m.valid[p]], np.int64))
+        self.recent = []
+
+    # ------------------------------------------------------------------ triangulation
+    def _triangulate(self, kf: KeyFrame) -> None:
+        m, sysm = self.sys.map, self.sys
+        mono = sysm.sensor == "mono"
+        nn = self.cfg.triangulate_neighbors * (2 if mono else 1)
+        K, bf = sysm.K, sysm.bf
+        base_stereo = bf / K[0, 0]
+        ratio_factor = 1.5 * sysm.scale_factor
+        P1 = K @ kf.w2c[:3]
+        C1 = kf.center
+        for n in kf.covisible(nn):
+            kf2 = m.kfs.get(n)
+            if kf2 is None:
+                continue
+            baseline = np.linalg.norm(kf2.center - C1)
+            if mono:
+                _, p2 = m.kf_point_ids(kf2)
+                if len(p2) == 0:
+                    continue
+                med = np.median(transform(kf2.w2c, m.pos[p2])[:, 2])
+                if baseline / max(med, 1e-9) < 0.01:
+                    continue
+            elif baseline < base_stereo:
+                continue
+            F = fundamental(kf.w2c, kf2.w2c, K)
+            i1, i2 = match_for_triangulation(kf, kf2, F, sysm.sigma2, ratio=self.cfg.triangulate_ratio)
+            if len(i1) == 0:
+                continue
+            X, ok = self._triangulate_pairs(kf, kf2, i1, i2, P1, base_stereo, ratio_factor)
+            if ok.any():
+                pids = m.add_points(X[ok], kf, i1[ok])
+                for p, j in zip(pids.tolist(), i2[ok].tolist()):
+                    m.add_obs(p, kf2, j)
+                m.update_geometry(pids)
+                m.update_descriptors(pids)
+                self.add_recent(pids)
+
+    def _triangulate_pairs(self, kf1, kf2, i1, i2, P1, base_stereo, ratio_factor):
+        sysm = self.sys
+        K, Ki = sysm.K, np.linalg.inv(sysm.K)
+        x1, x2 = kf1.kp.uv[i1], kf2.kp.uv[i2]
+        R1w, R2w = kf1.w2c[:3, :3], kf2.w2c[:3, :3]
+        r1 = (np.c_[x1, np.ones(len(x1))] @ Ki.T) @ R1w  # world rays (unnormalised)
+        r2 = (np.c_[x2, np.ones(len(x2))] @ Ki.T) @ R2w
+        cos_rays = (r1 * r2).sum(1) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1))
+        d1, d2 = kf1.depth[i1], kf2.depth[i2]
+        s1, s2 = d1 > 0, d2 > 0
+        cos_st1 = np.where(s1, np.cos(2 * np.arctan2(base_stereo / 2, np.where(s1, d1, 1))), 2.0)
+        cos_st2 = np.where(s2, np.cos(2 * np.arctan2(base_stereo / 2, np.where(s2, d2, 1))), 2.0)
+        cos_st = np.minimum(cos_st1, cos_st2)
+        tri = (cos_rays > 0) & (cos_rays < cos_st) & ((s1 | s2) | (cos_rays < 0.9998))
+        X = triangulate(P1, K @ kf2.w2c[:3], x1, x2)
+        use1 = ~tri & s1 & (cos_st1 <= cos_st2)
+        use2 = ~tri & s2 & ~use1
+        X[use1] = self._unproject(kf1, i1[use1])
+        X[use2] = self._unproject(kf2, i2[use2])
+        ok = (tri | use1 | use2) & np.isfinite(X).all(1)
+        for kf, idx in ((kf1, i1), (kf2, i2)):
+            chi2, th, z = reproj_chi2(kf.w2c, X, kf.kp.uv[idx], kf.ur[idx], 1.0 / sysm.sigma2[kf.kp.octave[idx]],
+                                      K, sysm.bf, sysm.ur_sigma)
+            ok &= (z > 0) & (chi2 < th)
+        dist1 = np.linalg.norm(X - kf1.center, axis=1)
+        dist2 = np.linalg.norm(X - kf2.center, axis=1)
+        ratio_dist = dist2 / np.maximum(dist1, 1e-12)
+        ratio_oct = sysm.scales[kf1.kp.octave[i1]] / sysm.scales[kf2.kp.octave[i2]]
+        ok &= (dist1 > 0) & (dist2 > 0) & (ratio_dist * ratio_factor >= ratio_oct) & (ratio_dist <= ratio_oct * ratio_factor)
+        return X, ok
+
+    def _unproject(self, kf: KeyFrame, idx: np.ndarray) -> np.ndarray:
+        K = self.sys.K
+        d = kf.depth[idx]
+        uv = kf.kp.uv[idx]
+        pc = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d, (uv[:, 1] - K[1, 2]) / K[1, 1] * d, d], 1)
+        return transform(inv_se3(kf.w2c), pc)
+
+    # ------------------------------------------------------------------ fusion
+    def _fuse(self, kf: KeyFrame) -> None:
+        m = self.sys.map
+        nn = self.cfg.fuse_neighbors * (2 if self.sys.sensor == "mono" else 1)
+        targets = []
+        for n in kf.covisible(nn):
+            if n in m.kfs and n not in targets:
+                targets.append(n)
+                for n2 in m.kfs[n].covisible(5):
+                    if n2 != kf.kf_id and n2 in m.kfs and n2 not in targets:
+                        targets.append(n2)
+        _, own = m.kf_point_ids(kf)
+        for t in targets:
+            self.fuse_into(m.kfs[t], own)
+        cand = [m.kf_point_ids(m.kfs[t])[1] for t in targets]
+        if cand:
+            pids = np.unique(np.concatenate(cand))
+            self.fuse_into(kf, pids)
+        _, own = m.kf_point_ids(kf)
+        m.update_geometry(own)
+        m.update_descriptors(own)
+        m.update_connections(kf)
+
+    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float = 3.0, S: np.ndarray | None = None) -> int:
+        """Project points pids into kf and merge with what its keypoints hold (ORB-SLAM Fuse).
+
+        S: optional similarity w2c [4,4] used for the projection instead of kf.w2c (loop fusion).
+        Returns the number of fused / added observations.
+        """
+        m, sysm = self.sys.map, self.sys
+        pids = pids[m.valid[pids]]
+        pids = np.array([p for p in pids.tolist() if kf.kf_id not in m.obs[p]], np.int64)
+        if len(pids) == 0:
+            return 0
+        w2c = S if S is not None else kf.w2c
+        q, k = self.project_match(kf, pids, w2c, th, fuse=True)
+        n = 0
+        for p, i in zip(pids[q].tolist(), k.tolist()):
+            if not m.valid[p] or kf.kf_id in m.obs[p]:
+                continue
+            cur = int(kf.points[i])
+            if cur >= 0 and m.valid[cur]:
+                if m.n_obs[cur] > m.n_obs[p]:
+                    m.replace_point(p, cur)
+                else:
+                    m.replace_point(cur, p)
+                    if kf.kf_id not in m.obs[p]:
+                        m.add_obs(p, kf, i)
+            else:
+                m.add_obs(p, kf, i)
+            n += 1
+        return n
+
+    def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,
+                      fuse: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorized projection search of points into a keyframe (chi2-gated when fuse)."""
+        m, sysm, cam = self.sys.map, self.sys, self.sys.camera
+        s = float(np.cbrt(np.linalg.det(w2c[:3, :3])))
+        P = m.pos[pids]
+        pc = transform(w2c, P)
+        uv = project(sysm.K, pc)
+        C = -np.linalg.inv(w2c[:3, :3]) @ w2c[:3, 3]
+        PO = P - C
+        dist = np.linalg.norm(PO, axis=1)
+        cos = (PO * m.normal[pids]).sum(1) / np.maximum(dist, 1e-12)
+        ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height) \
+            & (dist >= 0.8 * m.dmin[pids]) & (dist <= 1.2 * m.dmax[pids]) & (cos >= 0.5)
+        sel = np.flatnonzero(ok)
+        level = m.predict_level(pids[sel], dist[sel])
+        radius = th * sysm.scales[level]
+        qi, ki = kf.grid.query(uv[sel], radius)
+        o = kf.kp.octave[ki]
+        good = (o >= level[qi] - 1) & (o <= level[qi])
+        if fuse:
+            e2 = ((uv[sel][qi] - kf.kp.uv[ki]) ** 2).sum(1) / sysm.sigma2[o]
+            st = kf.ur[ki] >= 0
+            zc = pc[sel][qi, 2] / s
+            w_ur = 1.0 / sysm.sigma2[o] if sysm.ur_sigma is None else 1.0 / sysm.ur_sigma ** 2
+            disp = kf.kp.uv[ki, 0] - kf.ur[ki]
+            e2 = e2 + np.where(st, (sysm.bf / np.maximum(zc, 1e-9) - disp) ** 2, 0) * w_ur
+            good &= e2 < np.where(st, CHI2_STEREO, CHI2_MONO)
+        qi, ki = qi[good], ki[good]
+        d = hamming_pairs(m.desc[pids[sel]], qi, kf.kp.desc, ki)
+        q, k, d1, _, _ = best_two(qi, ki, d)
+        keep = d1 <= TH_LOW
+        q, k, d1 = q[keep], k[keep], d1[keep]
+        keep = unique_targets(q, k, d1)
+        return sel[q[keep]], k[keep]
+
+    # ------------------------------------------------------------------ bundle adjustment
+    def local_ba(self, kf: KeyFrame) -> None:
+        m = self.sys.map
+        with m.lock:
+            if kf.kf_id not in m.kfs:
+                return
+            window = [kf.kf_id] + [k for k in kf.covisible(self.cfg.ba_window - 1) if k in m.kfs]
+        self.run_ba(window, self.cfg.ba_fixed_max, self.cfg.ba_iterations)
+
+    def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10) -> None:
+        m = self.sys.map
+        with m.lock:
+            window = sorted(m.kfs) if kf_ids is None else list(kf_ids)
+        self.run_ba(window, 0, (iterations, iterations // 2), global_=True)
+
+    def run_ba(self, window: list[int], fixed_max: int, iterations, global_: bool = False) -> None:
+        """Bundle adjustment of window keyframes + their points; observers outside stay fixed."""
+        import time
+
+        t0 = time.perf_counter()
+        m, sysm = self.sys.map, self.sys
+        with m.lock:
+            problem = self._build_problem(window, fixed_max)
+        if problem is None:
+            return
+        poses, fixed, points, obs = problem
+        ba = sysm.ba
+        it1, it2 = (tuple(iterations) + (0,))[:2]
+        new_poses, new_points = ba.run(poses, fixed, points, obs, it1)
+        P = np.array([new_points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
+        bad, _ = ba.chi2(new_poses, P, obs)
+        if it2 > 0 and bad.any():
+            keep = ~bad
+            sub = Observations(obs.kf[keep], obs.pid[keep], obs.uv[keep], obs.ur[keep], obs.octave[keep])
+            sub_points = {p: new_points[p] for p in np.unique(sub.pid).tolist()}
+            new_poses, pts2 = ba.run(new_poses, fixed, sub_points, sub, it2)
+            new_points.update(pts2)
+            P = np.array([new_points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
+            bad, _ = ba.chi2(new_poses, P, obs)
+        with m.lock:
+            self._write_back(window, new_poses, fixed, new_points, obs, bad)
+        self.ba_times.append(time.perf_counter() - t0)
+
+    def _build_problem(self, window: list[int], fixed_max: int):
+        m, mono = self.sys.map, self.sys.sensor == "mono"
+        window = [k for k in window if k in m.kfs]
+        if not window:
+            return None
+        local = np.unique(np.concatenate([m.kf_point_ids(m.kfs[k])[1] for k in window]))
+        if len(local) == 0:
+            return None
+        wset = set(window)
+        counts: dict[int, int] = {}
+        for p in local.tolist():
+            for k in m.obs[p]:
+                if k not in wset and k in m.kfs:
+                    counts[k] = counts.get(k, 0) + 1
+        fixed_ids = sorted(counts, key=lambda k: (-counts[k], k))[:fixed_max] if fixed_max else []
+        fixed = set(fixed_ids)
+        if m.origin_kf in wset:
+            fixed.add(m.origin_kf)
+        if not fixed:
+            fixed.add(min(window))
+        kfs = window + fixed_ids
+        lset = np.zeros(m.n, bool)
+        lset[local] = True
+        ks, ps, ids = [], [], []
+        for k in kfs:
+            idx, pids = m.kf_point_ids(m.kfs[k])
+            sel = lset[pids]
+            ks.append(np.full(int(sel.sum()), k))
+            ps.append(pids[sel])
+            ids.append(idx[sel])
+        kk, pp, ii = np.concatenate(ks), np.concatenate(ps), np.concatenate(ids)
+        ur = np.concatenate([m.kfs[k].ur[i] for k, i in zip(kfs, ids)]) if not mono else np.full(len(kk), -1.0)
+        uv = np.concatenate([m.kfs[k].kp.uv[i] for k, i in zip(kfs, ids)])
+        octv = np.concatenate([m.kfs[k].kp.octave[i] for k, i in zip(kfs, ids)])
+        # a point needs two views (or one with depth) to be determined
+        n_view = np.bincount(pp, minlength=m.n)[pp] + np.bincount(pp, weights=(ur >= 0), minlength=m.n)[pp]
+        keep = n_view >= 2
+        obs = Observations(kk[keep], pp[keep], uv[keep], ur[keep], octv[keep])
+        pts = {p: m.pos[p].copy() for p in np.unique(obs.pid).tolist()}
+        poses = {k: m.kfs[k].w2c.copy() for k in kfs}
+        return poses, fixed, pts, obs
+
+    def _write_back(self, window, new_poses, fixed, new_points, obs, bad) -> None:
+        m = self.sys.map
+        min_obs = 2 if self.sys.sensor == "mono" else 1
+        for k, p in zip(obs.kf[bad].tolist(), obs.pid[bad].tolist()):
+            if m.valid[p]:
+                m.erase_obs(p, k, min_obs)
+        touched = []
+        for k in window:
+            if k in m.kfs and k not in fixed:
+                m.kfs[k].w2c = new_poses[k]
+                touched.append(k)
+        pids = np.array([p for p in new_points if m.valid[p]], np.int64)
+        for p in pids.tolist():
+            m.pos[p] = new_points[p]
+        m.update_geometry(pids)
+        self.sys.emit_poses(touched)
+
+    # ------------------------------------------------------------------ keyframe culling
+    def _cull_keyframes(self, kf: KeyFrame) -> None:
+        m, sysm = self.sys.map, self.sys
+        th_obs = 3
+        for n in kf.covisible(self.cfg.cull_window):
+            k = m.kfs.get(n)
+            if k is None or n == m.origin_kf or k.protected or n == kf.kf_id:
+                continue
+            idx, pids = m.kf_point_ids(k)
+            if sysm.sensor != "mono":
+                close = (k.depth[idx] > 0) & (k.depth[idx] < sysm.th_depth)
+                idx, pids = idx[close], pids[close]
+            if len(pids) == 0:
+                continue
+            redundant = 0
+            for i, p in zip(idx.tolist(), pids.tolist()):
+                o = m.obs[p]
+                if m.n_obs[p] <= th_obs:
+                    continue
+                lvl = k.kp.octave[i]
+                cnt = 0
+                for k2, j in o.items():
+                    if k2 == n:
+                        continue
+                    kk = m.kfs.get(k2)
+                    if kk is not None and kk.kp.octave[j] <= lvl + 1:
+                        cnt += 1
+                        if cnt >= th_obs:
+                            redundant += 1
+                            break
+            if redundant > self.cfg.redundancy * len(pids):
+                m.set_kf_bad(k)
+                sysm.kfdb.erase(n)
+                sysm.log(f"culled keyframe {n}")

@@ -1,0 +1,352 @@
+"""The SLAM map: keyframes with a covisibility graph and spanning tree, and map points.
+
+Map points live in growable structure-of-arrays (positions, descriptors, viewing normals, scale
+ranges, counters) so that tracking can project and match thousands of them without Python loops;
+each point's observations are a small dict ``kf_id -> keypoint index`` (mapping-side work).
+Keyframe ids are never reused; a culled keyframe is remembered by its pose relative to its parent
+so that the frames tracked against it keep a pose.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from segs.slam.features import Keypoints, hamming_matrix
+from segs.slam.frame import KeypointGrid, SlamFrame
+from segs.slam.geometry import cam_center, inv_se3
+
+
+class KeyFrame:
+    """A keyframe: the frame's features, its w2c pose [4,4], map point per keypoint, graph links."""
+
+    def __init__(self, kf_id: int, frame: SlamFrame, w2c: np.ndarray):
+        self.kf_id = kf_id
+        self.frame_index = frame.index
+        self.timestamp = frame.timestamp
+        self.kp: Keypoints = frame.kp
+        self.depth = frame.depth
+        self.ur = frame.ur
+        self.colors = frame.colors
+        self.grid: KeypointGrid = frame.grid
+        self.points = np.where(frame.outlier, -1, frame.points).astype(np.int64)
+        self.w2c = np.array(w2c, np.float64)
+        self.conn: dict[int, int] = {}
+        self.ordered: list[int] = []
+        self.parent: int | None = None
+        self.children: set[int] = set()
+        self.loop_edges: set[int] = set()
+        self.bad = False
+        self.bow: dict[int, float] = {}
+        self.words: np.ndarray = np.zeros(0, np.int64)  # visual word per keypoint
+        self.protected = False  # loop closing in progress: no culling
+
+    @property
+    def center(self) -> np.ndarray:
+        return cam_center(self.w2c)
+
+    def __len__(self) -> int:
+        return len(self.kp)
+
+    def covisible(self, n: int | None = None) -> list[int]:
+        return self.ordered[:n] if n is not None else list(self.ordered)
+
+
+@dataclass
+class CulledKeyFrame:
+    """A keyframe removed from the map: pose relative to its parent (w2c_kf @ c2w_parent)."""
+
+    kf_id: int
+    frame_index: int
+    parent: int
+    rel: np.ndarray
+
+
+class Map:
+    """Keyframes + map points. All mutation happens under `lock` (an RLock) in threaded mode."""
+
+    def __init__(self, scales: np.ndarray, capacity: int = 4096):
+        self.scales = np.asarray(scales, np.float64)
+        self.log_scale = float(np.log(self.scales[1])) if len(self.scales) > 1 else 1.0
+        self.lock = threading.RLock()
+        self.kfs: dict[int, KeyFrame] = {}
+        self.culled: dict[int, CulledKeyFrame] = {}
+        self.next_kf_id = 0
+        self.origin_kf: int | None = None
+        self.version = 0  # bumps when point membership of keyframes changes
+        self.n = 0
+        self._alloc(capacity)
+        self.obs: list[dict[int, int]] = []
+
+    # ----------------------------------------------------------------- point storage
+    def _alloc(self, cap: int) -> None:
+        def grow(name, shape, dtype, fill=0):
+            old = getattr(self, name, None)
+            new = np.full((cap,) + shape, fill, dtype)
+            if old is not None:
+                new[: len(old)] = old
+            setattr(self, name, new)
+
+        grow("pos", (3,), np.float64)
+        grow("desc", (32,), np.uint8)
+        grow("normal", (3,), np.float64)
+        grow("dmin", (), np.float64)
+        grow("dmax", (), np.float64)
+        grow("visible", (), np.int64, 1)
+        grow("found", (), np.int64, 1)
+        grow("ref_kf", (), np.int64, -1)
+        grow("first_kf", (), np.int64, -1)
+        grow("color", (3,), np.float32)
+        grow("valid", (), bool, False)
+        grow("emitted", (), bool, False)
+        grow("replaced", (), np.int64, -1)
+        grow("n_obs", (), np.int64)  # observations, stereo / RGB-D ones counting 2 (ORB-SLAM nObs)
+        grow("ba_kf", (), np.int64, -1)
+        self.cap = cap
+
+    def add_points(self, pos: np.ndarray, kf: KeyFrame, kp_idx: np.ndarray) -> np.ndarray:
+        """New points at pos [M,3] observed by kf at keypoints kp_idx [M] -> ids [M]."""
+        m = len(pos)
+        if self.n + m > self.cap:
+            self._alloc(max(2 * self.cap, self.n + m))
+        ids = np.arange(self.n, self.n + m)
+        self.n += m
+        self.pos[ids] = pos
+        self.desc[ids] = kf.kp.desc[kp_idx]
+        self.color[ids] = kf.colors[kp_idx]
+        self.ref_kf[ids] = kf.kf_id
+        self.first_kf[ids] = kf.kf_id
+        self.valid[ids] = True
+        self.visible[ids] = 1
+        self.found[ids] = 1
+        self.n_obs[ids] = np.where(kf.ur[kp_idx] >= 0, 2, 1)
+        self.obs.extend({kf.kf_id: int(i)} for i in kp_idx)
+        kf.points[kp_idx] = ids
+        self.update_geometry(ids)
+        self.version += 1
+        return ids
+
+    def add_obs(self, pid: int, kf: KeyFrame, idx: int) -> None:
+        if kf.kf_id not in self.obs[pid]:
+            self.obs[pid][kf.kf_id] = int(idx)
+            self.n_obs[pid] += 2 if kf.ur[idx] >= 0 else 1
+        kf.points[idx] = pid
+        self.version += 1
+
+    def erase_obs(self, pid: int, kf_id: int, min_obs: int = 1) -> None:
+        """Remove kf_id's observation of pid; the point dies when fewer than min_obs remain."""
+        o = self.obs[pid]
+        idx = o.pop(kf_id, None)
+        if idx is None:
+            return
+        kf = self.kfs.get(kf_id)
+        self.n_obs[pid] -= 2 if kf is not None and kf.ur[idx] >= 0 else 1
+        if kf is not None and kf.points[idx] == pid:
+            kf.points[idx] = -1
+        if self.ref_kf[pid] == kf_id and o:
+            self.ref_kf[pid] = next(iter(o))
+        if len(o) < min_obs:
+            self.set_point_bad(pid)
+        self.version += 1
+
+    def set_point_bad(self, pid: int) -> None:
+        for kf_id, idx in self.obs[pid].items():
+            kf = self.kfs.get(kf_id)
+            if kf is not None and kf.points[idx] == pid:
+                kf.points[idx] = -1
+        self.obs[pid] = {}
+        self.n_obs[pid] = 0
+        self.valid[pid] = False
+        self.version += 1
+
+    def replace_point(self, old: int, new: int) -> None:
+        """Merge point `old` into `new` (fusion of duplicates)."""
+        if old == new or not self.valid[old] or not self.valid[new]:
+            return
+        for kf_id, idx in list(self.obs[old].items()):
+            kf = self.kfs.get(kf_id)
+            if kf is None:
+                continue
+            if kf_id in self.obs[new]:
+                kf.points[idx] = -1
+            else:
+                self.obs[new][kf_id] = idx
+                self.n_obs[new] += 2 if kf.ur[idx] >= 0 else 1
+                kf.points[idx] = new
+        self.visible[new] += self.visible[old]
+        self.found[new] += self.found[old]
+        self.obs[old] = {}
+        self.n_obs[old] = 0
+        self.valid[old] = False
+        self.replaced[old] = new
+        self.version += 1
+        self.update_descriptors(np.array([new]))
+
+    def live(self, pid: int) -> int:
+        """Follow replacements to the surviving point (or -1)."""
+        while pid >= 0 and not self.valid[pid]:
+            pid = int(self.replaced[pid])
+        return pid
+
+    # ----------------------------------------------------------------- point statistics
+    def update_geometry(self, pids: np.ndarray) -> None:
+        """Viewing normal (mean direction from the observing cameras) and scale-invariance range."""
+        last = self.scales[-1]
+        for pid in np.asarray(pids, np.int64):
+            o = self.obs[pid]
+            if not o:
+                continue
+            p = self.pos[pid]
+            dirs = []
+            for kf_id in o:
+                kf = self.kfs.get(kf_id)
+                if kf is not None:
+                    v = p - kf.center
+                    dirs.append(v / max(np.linalg.norm(v), 1e-12))
+            if dirs:
+                n = np.sum(dirs, 0)
+                self.normal[pid] = n / max(np.linalg.norm(n), 1e-12)
+            ref = self.kfs.get(int(self.ref_kf[pid]))
+            if ref is None:
+                continue
+            idx = o.get(ref.kf_id)
+            if idx is None:
+                continue
+            dist = np.linalg.norm(p - ref.center)
+            self.dmax[pid] = dist * self.scales[ref.kp.octave[idx]]
+            self.dmin[pid] = self.dmax[pid] / last
+
+    def update_descriptors(self, pids: np.ndarray) -> None:
+        """Distinctive descriptor: the observation's descriptor with the least median distance."""
+        for pid in np.asarray(pids, np.int64):
+            o = self.obs[pid]
+            if len(o) < 2:
+                continue
+            ds = [self.kfs[k].kp.desc[i] for k, i in o.items() if k in self.kfs]
+            if len(ds) < 2:
+                continue
+            d = np.stack(ds)
+            dm = hamming_matrix(d, d)
+            self.desc[pid] = d[np.argmin(np.median(dm, 1))]
+
+    def predict_level(self, pids: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """Predicted pyramid level [M] for points pids viewed from distance dist [M]."""
+        ratio = self.dmax[pids] / np.maximum(dist, 1e-9)
+        lvl = np.ceil(np.log(np.maximum(ratio, 1e-9)) / self.log_scale)
+        return np.clip(lvl, 0, len(self.scales) - 1).astype(np.int64)
+
+    # ----------------------------------------------------------------- keyframes
+    def new_kf_id(self) -> int:
+        k = self.next_kf_id
+        self.next_kf_id += 1
+        return k
+
+    def add_keyframe(self, kf: KeyFrame) -> None:
+        self.kfs[kf.kf_id] = kf
+        if self.origin_kf is None:
+            self.origin_kf = kf.kf_id
+        self.version += 1
+
+    def kf_point_ids(self, kf: KeyFrame) -> np.ndarray:
+        """Valid map points of kf -> (keypoint indices [K], point ids [K])."""
+        idx = np.flatnonzero(kf.points >= 0)
+        pid = kf.points[idx]
+        ok = self.valid[pid]
+        return idx[ok], pid[ok]
+
+    def update_connections(self, kf: KeyFrame, th: int = 15) -> None:
+        """Covisibility weights (shared points) with every keyframe; spanning-tree parent."""
+        counts: dict[int, int] = {}
+        _, pids = self.kf_point_ids(kf)
+        for pid in pids:
+            for k in self.obs[pid]:
+                if k != kf.kf_id:
+                    counts[k] = counts.get(k, 0) + 1
+        counts = {k: c for k, c in counts.items() if k in self.kfs and not self.kfs[k].bad}
+        if not counts:
+            return
+        kmax = max(counts, key=lambda k: (counts[k], -k))
+        conn = {k: c for k, c in counts.items() if c >= th} or {kmax: counts[kmax]}
+        for k, c in conn.items():
+            other = self.kfs[k]
+            other.conn[kf.kf_id] = c
+            self._order(other)
+        kf.conn = conn
+        self._order(kf)
+        if kf.parent is None and kf.kf_id != self.origin_kf:
+            kf.parent = kmax
+            self.kfs[kmax].children.add(kf.kf_id)
+
+    @staticmethod
+    def _order(kf: KeyFrame) -> None:
+        kf.ordered = sorted(kf.conn, key=lambda k: (-kf.conn[k], k))
+
+    def erase_connection(self, kf: KeyFrame, other: int) -> None:
+        if kf.conn.pop(other, None) is not None:
+            self._order(kf)
+
+    def set_kf_bad(self, kf: KeyFrame) -> None:
+        """Cull a keyframe: drop its observations, re-parent its children (ORB-SLAM's rule)."""
+        if kf.kf_id == self.origin_kf or kf.bad:
+            return
+        for k in list(kf.conn):
+            if k in self.kfs:
+                self.erase_connection(self.kfs[k], kf.kf_id)
+        idx, pids = self.kf_point_ids(kf)
+        for pid in pids:
+            self.erase_obs(int(pid), kf.kf_id)
+        self._reparent_children(kf)
+        parent = self.kfs.get(kf.parent) if kf.parent is not None else None
+        if parent is not None:
+            parent.children.discard(kf.kf_id)
+            self.culled[kf.kf_id] = CulledKeyFrame(kf.kf_id, kf.frame_index, parent.kf_id,
+                                                   kf.w2c @ inv_se3(parent.w2c))
+        kf.bad = True
+        kf.conn = {}
+        kf.ordered = []
+        del self.kfs[kf.kf_id]
+        self.version += 1
+
+    def _reparent_children(self, kf: KeyFrame) -> None:
+        candidates = {kf.parent} if kf.parent is not None else set()
+        children = {c for c in kf.children if c in self.kfs}
+        while children:
+            best = None
+            for c in children:
+                ch = self.kfs[c]
+                for k, w in ch.conn.items():
+                    if k in candidates and (best is None or w > best[2]):
+                        best = (c, k, w)
+            if best is None:
+                break
+            c, k, _ = best
+            self.kfs[c].parent = k
+            self.kfs[k].children.add(c)
+            candidates.add(c)
+            children.discard(c)
+        for c in children:  # no covisible candidate: attach to the culled kf's parent
+            self.kfs[c].parent = kf.parent
+            if kf.parent in self.kfs:
+                self.kfs[kf.parent].children.add(c)
+
+    def kf_pose(self, kf_id: int) -> np.ndarray | None:
+        """w2c of a live keyframe, or of a culled one recomposed through its parents."""
+        rel = np.eye(4)
+        seen = set()
+        while kf_id not in self.kfs:
+            c = self.culled.get(kf_id)
+            if c is None or kf_id in seen:
+                return None
+            seen.add(kf_id)
+            rel = rel @ c.rel
+            kf_id = c.parent
+        return rel @ self.kfs[kf_id].w2c
+
+    def live_ancestor(self, kf_id: int) -> int | None:
+        while kf_id not in self.kfs:
+            c = self.culled.get(kf_id)
+            if c is None:
+                return None
+            kf_id = c.parent
+        return kf_id

@@ -1,0 +1,322 @@
+"""Optimisation: motion-only pose refinement (OpenCV LM with ORB-SLAM's outlier rounds), bundle
+adjustment and pose-graph optimisation (gtsam, Levenberg-Marquardt, Huber robust factors).
+
+Conventions: poses enter and leave as w2c [4,4]; gtsam variables are camera-to-world Pose3 /
+Similarity3 (gtsam's convention). Observation noise is isotropic with sigma = scale^octave pixels
+(ORB-SLAM's information 1/sigma^2); chi-square thresholds 5.991 (2 dof) and 7.815 (3 dof).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import gtsam
+import numpy as np
+
+from segs.slam.geometry import inv_se3, orthonormalize, rt_to_w2c, transform, w2c_to_rt
+
+CHI2_MONO = 5.991
+CHI2_STEREO = 7.815
+
+
+def reproj_chi2(w2c: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray | None,
+                inv_sigma2: np.ndarray, K: np.ndarray, bf: float,
+                ur_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation chi2 [M], its threshold [M] (2 or 3 dof) and the camera depth [M].
+
+    The third (stereo / RGB-D) residual is the disparity error bf/z - (u_meas - ur_meas), whose
+    pixel sigma is ur_sigma (RGB-D: from the depth noise) or, when None, the keypoint's octave
+    sigma (stereo). Equivalent to ORB-SLAM's (u, v, ur) residual with correlated u / ur noise.
+    """
+    pc = transform(w2c, P)
+    z = pc[:, 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+    chi2 = ((u - uv[:, 0]) ** 2 + (v - uv[:, 1]) ** 2) * inv_sigma2
+    th = np.full(len(P), CHI2_MONO)
+    if ur is not None:
+        st = ur >= 0
+        w_ur = inv_sigma2 if ur_sigma is None else 1.0 / ur_sigma ** 2
+        chi2 = chi2 + np.where(st, (bf / zs - (uv[:, 0] - ur)) ** 2, 0.0) * w_ur
+        th[st] = CHI2_STEREO
+    return chi2, th, z
+
+
+def _se3_exp(x: np.ndarray) -> np.ndarray:
+    """[6] (rotation vector, translation) -> [4,4] (first-order translation, exact rotation)."""
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.ascontiguousarray(x[:3], np.float64).reshape(3, 1))[0]
+    T[:3, 3] = x[3:]
+    return T
+
+
+def _so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) at rotation vector w [3] -> [3,3]."""
+    th = float(np.linalg.norm(w))
+    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if th < 1e-8:
+        return np.eye(3) + 0.5 * W
+    return np.eye(3) + (1 - np.cos(th)) / th ** 2 * W + (th - np.sin(th)) / th ** 3 * (W @ W)
+
+
+def _pose_residuals(x, w2c0, P, uv, ur, w, K, bf, stereo, w_ur):
+    """Whitened reprojection residuals [M*2 (+ stereo count)] and Jacobian wrt a left increment."""
+    T = _se3_exp(x) @ w2c0
+    pc = P @ T[:3, :3].T + T[:3, 3]
+    z = np.where(pc[:, 2] < 1e-6, 1e-6, pc[:, 2])
+    iz = 1.0 / z
+    fx, fy = K[0, 0], K[1, 1]
+    u = fx * pc[:, 0] * iz + K[0, 2]
+    v = fy * pc[:, 1] * iz + K[1, 2]
+    ru, rv = (u - uv[:, 0]) * w, (v - uv[:, 1]) * w
+    # d pc / d (omega, t) = [-[pc]x, I]
+    X, Y = pc[:, 0], pc[:, 1]
+    du = np.stack([fx * iz, np.zeros_like(iz), -fx * X * iz * iz], 1)
+    dv = np.stack([np.zeros_like(iz), fy * iz, -fy * Y * iz * iz], 1)
+
+    Jl = _so3_left_jacobian(x[:3])
+    rq = pc - x[3:]  # rotated point before the translation increment
+
+    def jac(d):
+        # d pc / d omega = -[pc]x Jl(omega): row d^T (-[pc]x) = (pc x d)^T
+        return np.concatenate([np.cross(rq, d) @ Jl, d], 1)
+
+    res = [ru, rv]
+    J = [jac(du) * w[:, None], jac(dv) * w[:, None]]
+    if stereo is not None and stereo.any():
+        s = stereo
+        ws = w_ur[s]
+        rr = (bf * iz[s] - (uv[s, 0] - ur[s])) * ws
+        dr = np.stack([np.zeros(s.sum()), np.zeros(s.sum()), -bf * iz[s] * iz[s]], 1)
+        res.append(rr)
+        J.append(np.concatenate([np.cross(rq[s], dr) @ Jl, dr], 1) * ws[:, None])
+    return np.concatenate(res), np.concatenate(J)
+
+
+def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray | None,
+                inv_sigma2: np.ndarray, K: np.ndarray, bf: float, rounds: int = 4,
+                min_inliers: int = 6, iterations: int = 20,
+                ur_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Motion-only bundle adjustment of a w2c from map points P [M,3] and keypoints uv [M,2].
+
+    ORB-SLAM's PoseOptimization: `rounds` optimisations (scipy least_squares, trust region,
+    Huber loss at sqrt(5.991), residuals whitened by the keypoint's octave sigma; stereo /
+    RGB-D observations (ur >= 0) add the right-image coordinate); after each round every match
+    is classified by its chi2 against 5.991 / 7.815 and only inliers enter the next.
+    Returns (w2c [4,4], inlier mask [M]).
+    """
+    n = len(P)
+    if n < min_inliers:
+        return w2c0.copy(), np.zeros(n, bool)
+    w = np.sqrt(inv_sigma2)
+    w_ur = w if ur_sigma is None else np.full(n, 1.0 / ur_sigma)
+    stereo = (ur >= 0) if ur is not None else None
+    huber = np.sqrt(CHI2_MONO)
+    inl = np.ones(n, bool)
+    w2c = w2c0.copy()
+    for r in range(rounds):
+        if inl.sum() < min_inliers:
+            return w2c, inl
+        # Huber by iteratively reweighted least squares; the first round widens the kernel
+        # gradually (the prediction may be far off), the last round is plain least squares.
+        scales = (10.0, 3.0, 1.0) if r == 0 else ((1.0,) if r < rounds - 1 else (None,))
+        for sc in scales:
+            if sc is None:
+                hw = np.ones(int(inl.sum()))
+            else:
+                chi2, _, _ = reproj_chi2(w2c, P[inl], uv[inl], ur[inl] if ur is not None else None,
+                                         inv_sigma2[inl], K, bf, ur_sigma)
+                e = np.sqrt(chi2)
+                hw = np.sqrt(np.where(e > sc * huber, sc * huber / np.maximum(e, 1e-12), 1.0))
+            args = (w2c, P[inl], uv[inl], ur[inl] if ur is not None else None, w[inl] * hw, K, bf,
+                    stereo[inl] if stereo is not None else None, w_ur[inl] * hw)
+            w2c = orthonormalize(_se3_exp(_solve_lm(args, iterations)) @ w2c)
+        chi2, th, z = reproj_chi2(w2c, P, uv, ur, inv_sigma2, K, bf, ur_sigma)
+        new = (chi2 < th) & (z > 0)
+        if r > 0 and np.array_equal(new, inl):
+            return w2c, new
+        inl = new
+    return w2c, inl
+
+
+def _solve_lm(args, iterations: int) -> np.ndarray:
+    """Levenberg-Marquardt (MINPACK via scipy) on the 6-vector pose increment."""
+    from scipy.optimize import least_squares
+
+    sol = least_squares(lambda x: _pose_residuals(x, *args)[0], np.zeros(6),
+                        jac=lambda x: _pose_residuals(x, *args)[1], method="lm", max_nfev=iterations,
+                        x_scale="jac")
+    return sol.x
+
+
+def pnp_ransac(P: np.ndarray, uv: np.ndarray, K: np.ndarray, reproj: float = 4.0,
+               iterations: int = 2000, seed: int = 0) -> tuple[np.ndarray | None, np.ndarray]:
+    """Absolute pose from 3D-2D matches with RANSAC (cv2, deterministic seed) -> (w2c, inlier mask)."""
+    if len(P) < 6:
+        return None, np.zeros(len(P), bool)
+    cv2.setRNGSeed(int(seed))
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(P.astype(np.float64), uv.astype(np.float64), K, None,
+                                             iterationsCount=iterations, reprojectionError=reproj,
+                                             confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+    mask = np.zeros(len(P), bool)
+    if not ok or inl is None:
+        return None, mask
+    mask[inl.ravel()] = True
+    return rt_to_w2c(rvec, tvec), mask
+
+
+# --------------------------------------------------------------------------- bundle adjustment
+@dataclass
+class Observations:
+    """Flattened observations: kf [O] kf id, pid [O] point id, uv [O,2], ur [O] (-1: mono), octave [O]."""
+
+    kf: np.ndarray
+    pid: np.ndarray
+    uv: np.ndarray
+    ur: np.ndarray
+    octave: np.ndarray
+
+
+def _pose3(w2c: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(inv_se3(w2c))
+
+
+class BundleAdjuster:
+    """Local / global BA over keyframe poses and points with gtsam (Huber, LM).
+
+    K: intrinsics; bf: fx * baseline for stereo / RGB-D observations (ignored when ur < 0);
+    sigma: per-octave pixel sigma [L]; huber: whether the robust kernel is used.
+    """
+
+    def __init__(self, K: np.ndarray, bf: float, scales: np.ndarray, huber: bool = True,
+                 ur_sigma: float | None = None):
+        self.K = K
+        self.ur_sigma = ur_sigma
+        self.bf = float(bf)
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        self.cal = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
+        self.cal_st = gtsam.Cal3_S2Stereo(fx, fy, 0.0, cx, cy, max(self.bf / fx, 1e-9))
+        self.inv_sigma2 = 1.0 / np.asarray(scales, np.float64) ** 2
+
+        def robust(dim, sigma, th):
+            if dim == 3:  # (uL, uR, v) with uR = uL - disparity: correlated noise
+                sd2 = (ur_sigma or sigma) ** 2
+                s2 = sigma ** 2
+                cov = np.array([[s2, s2, 0.0], [s2, s2 + sd2, 0.0], [0.0, 0.0, s2]])
+                base = gtsam.noiseModel.Gaussian.Covariance(cov)
+            else:
+                base = gtsam.noiseModel.Isotropic.Sigma(dim, sigma)
+            if not huber:
+                return base
+            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(np.sqrt(th)), base)
+
+        self.noise2 = [robust(2, s, CHI2_MONO) for s in scales]
+        self.noise3 = [robust(3, s, CHI2_STEREO) for s in scales]
+        self.prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+
+    def run(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
+            obs: Observations, iterations: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Optimise poses (w2c, kf_id -> [4,4]; those in `fixed` stay) and points (pid -> [3])."""
+        X = lambda k: gtsam.symbol("x", int(k))
+        L = lambda p: gtsam.symbol("l", int(p))
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k, T in poses.items():
+            values.insert(X(k), _pose3(T))
+            if k in fixed:
+                graph.add(gtsam.PriorFactorPose3(X(k), _pose3(T), self.prior))
+        for p, x in points.items():
+            values.insert(L(p), np.asarray(x, np.float64))
+        for k, p, (u, v), r, o in zip(obs.kf.tolist(), obs.pid.tolist(), obs.uv.tolist(),
+                                      obs.ur.tolist(), obs.octave.tolist()):
+            if r >= 0:
+                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, r, v), self.noise3[o],
+                                                      X(k), L(p), self.cal_st))
+            else:
+                graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), self.noise2[o],
+                                                               X(k), L(p), self.cal))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(int(iterations))
+        params.setRelativeErrorTol(1e-5)
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        except RuntimeError:  # indeterminate system (degenerate window): keep the input
+            return dict(poses), dict(points)
+        new_poses = {k: inv_se3(result.atPose3(X(k)).matrix()) for k in poses}
+        new_points = {p: result.atPoint3(L(p)) for p in points}
+        return new_poses, new_points
+
+    def chi2(self, poses: dict[int, np.ndarray], points: np.ndarray, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+        """Outlier test per observation: (chi2 > threshold or behind the camera) [O] bool, chi2 [O].
+
+        points: [O,3] position of each observation's point.
+        """
+        bad = np.zeros(len(obs.kf), bool)
+        chi = np.zeros(len(obs.kf))
+        for k in np.unique(obs.kf):
+            m = obs.kf == k
+            c, th, z = reproj_chi2(poses[int(k)], points[m], obs.uv[m], obs.ur[m],
+                                   self.inv_sigma2[obs.octave[m]], self.K, self.bf, self.ur_sigma)
+            chi[m] = c
+            bad[m] = (c > th) | (z <= 0)
+        return bad, chi
+
+
+# --------------------------------------------------------------------------- pose graph
+def pose_graph(poses: dict[int, np.ndarray], edges: list[tuple[int, int, np.ndarray]], fixed: set[int],
+               sim3: bool, iterations: int = 20,
+               corrected: dict[int, np.ndarray] | None = None) -> dict[int, np.ndarray]:
+    """Essential-graph optimisation.
+
+    poses: kf_id -> initial similarity S_cw [4,4] (w2c; with scale for Sim3 after a correction);
+    edges: (i, j, S_ij) with S_ij the measured relative transform S_iw @ S_wj (i.e. c_j -> c_i);
+    fixed: kf ids held constant. Returns kf_id -> optimised S_cw [4,4] (a similarity if sim3).
+    """
+    X = lambda k: gtsam.symbol("x", int(k))
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    if sim3:
+        to_var = lambda S: _sim3(np.linalg.inv(S))
+        noise = gtsam.noiseModel.Isotropic.Sigma(7, 1.0)
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(7, 1e-6)
+    else:
+        to_var = lambda T: gtsam.Pose3(inv_se3(T))
+        noise = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+    for k, S in poses.items():
+        values.insert(X(k), to_var(S))
+        if k in fixed:
+            graph.add((gtsam.PriorFactorSimilarity3 if sim3 else gtsam.PriorFactorPose3)(X(k), to_var(S), prior_noise))
+    for i, j, Sij in edges:
+        # between(x_i, x_j) = T_wi^-1 T_wj = T_ij (camera j expressed in camera i)
+        meas = _sim3(Sij) if sim3 else gtsam.Pose3(Sij)
+        graph.add((gtsam.BetweenFactorSimilarity3 if sim3 else gtsam.BetweenFactorPose3)(X(i), X(j), meas, noise))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(iterations))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    out = {}
+    for k in poses:
+        if sim3:
+            out[k] = np.linalg.inv(_sim3_matrix(result.atSimilarity3(X(k))))
+        else:
+            out[k] = inv_se3(result.atPose3(X(k)).matrix())
+    return out
+
+
+def _sim3(S: np.ndarray) -> gtsam.Similarity3:
+    """Our similarity [[sR, t],[0,1]] -> gtsam.Similarity3 (which acts as s (R p + t'))."""
+    s = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    R = S[:3, :3] / s
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ Vt
+    return gtsam.Similarity3(gtsam.Rot3(R), S[:3, 3] / s, s)
+
+
+def _sim3_matrix(g: gtsam.Similarity3) -> np.ndarray:
+    """gtsam.Similarity3 -> our [[sR, t],[0,1]]."""
+    s = g.scale()
+    S = np.eye(4)
+    S[:3, :3] = s * g.rotation().matrix()
+    S[:3, 3] = s * np.asarray(g.translation())
+    return S

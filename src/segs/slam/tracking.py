@@ -1,0 +1,420 @@
+"""Tracking: per-frame pose from the map (ORB-SLAM's Tracking thread).
+
+track(frame): initialise if needed; else constant-velocity prediction + projection matching of the
+last frame's points (fallback: descriptor matching against the reference keyframe), motion-only
+pose optimisation, then projection matching into the local map (keyframes sharing points with the
+frame and their covisible neighbours) and a second optimisation. When tracking fails, the frame is
+lost (no pose) and the following frames try relocalization (bag-of-words candidates, PnP RANSAC).
+The keyframe decision follows ORB-SLAM3 (max / min frame gap, tracked-points ratio against the
+reference keyframe, close-point need for stereo / RGB-D).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from segs.slam.frame import SlamFrame
+from segs.slam.geometry import cam_center, inv_se3, orthonormalize, project, transform
+from segs.slam.initialization import MonoInitializer
+from segs.slam.map import KeyFrame
+from segs.slam.matching import TH_HIGH, match_frame_to_kf, search_projection
+from segs.slam.optimize import pnp_ransac, refine_pose
+
+if TYPE_CHECKING:
+    from segs.slam.orb import OrbFrontend as SlamSystem
+
+
+class Tracker:
+    """Tracks frames against the map of `system` (a SlamSystem)."""
+
+    def __init__(self, system: "SlamSystem"):
+        self.sys = system
+        self.cfg = system.cfg.tracking
+        self.state = "init"
+        self.last: SlamFrame | None = None
+        self.velocity: np.ndarray | None = None
+        self.ref_kf: int | None = None
+        self.last_kf_frame = -(10 ** 9)
+        self.last_reloc_frame = -(10 ** 9)
+        self.lost_since: int | None = None
+        self.last_good_w2c: np.ndarray | None = None
+        self._local_key = None
+        self._local_kfs: list[int] = []
+        self._local_pids = np.zeros(0, np.int64)
+        self._max_inl = 0
+        self.mono_init = MonoInitializer(system.cfg.init, system.K, system.sigma2, system.seed) \
+            if system.sensor == "mono" else None
+
+    # ------------------------------------------------------------------ entry point
+    def track(self, frame: SlamFrame) -> KeyFrame | None:
+        """Sets frame.w2c (None when lost); returns a new keyframe if one was created."""
+        m = self.sys.map
+        with m.lock:
+            if self.state == "init":
+                return self._initialize(frame)
+            ok = False
+            if self.state == "ok":
+                if self.velocity is not None and self.last is not None:
+                    ok = self._track_motion(frame)
+                if not ok:
+                    ok = self._track_reference(frame)
+                if ok:
+                    ok = self._track_local_map(frame)
+            else:
+                ok = self._relocalize(frame)
+            if not ok:
+                return self._lost(frame)
+            if self.state != "ok":
+                self.lost_since = None
+            self.state = "ok"
+            if self.last is not None and self.last.w2c is not None and frame.index - self.last.index == 1:
+                self.velocity = orthonormalize(frame.w2c @ inv_se3(self.last.w2c))
+            else:
+                self.velocity = None
+            kf = self._create_keyframe(frame) if self._need_keyframe(frame) else None
+            frame.points[frame.outlier] = -1
+            frame.outlier[:] = False
+            self.last = frame
+            self.last_good_w2c = frame.w2c
+            if kf is None:
+                frame.ref_kf = self.ref_kf
+            return kf
+
+    def _lost(self, frame: SlamFrame) -> None:
+        frame.w2c = None
+        self.velocity = None
+        if self.state == "ok":
+            self.lost_since = frame.index
+        self.state = "lost"
+        n_lost = frame.index - (self.lost_since if self.lost_since is not None else frame.index)
+        if self.cfg.restart_after_lost and n_lost >= self.cfg.restart_after_lost and self.sys.sensor != "mono":
+            self.sys.log(f"frame {frame.index}: lost for {n_lost} frames, restarting at the last pose")
+            self.state = "init"
+        return None
+
+    # ------------------------------------------------------------------ initialization
+    def _initialize(self, frame: SlamFrame) -> KeyFrame | None:
+        if self.sys.sensor == "mono":
+            return self._initialize_mono(frame)
+        if int((frame.depth > 0).sum()) < self.cfg.min_init_points:
+            frame.w2c = None
+            return None
+        w2c = self.last_good_w2c if self.last_good_w2c is not None else np.eye(4)
+        frame.w2c = w2c.copy()
+        kf = KeyFrame(self.sys.map.new_kf_id(), frame, frame.w2c)
+        self.sys.map.add_keyframe(kf)
+        idx = np.flatnonzero(frame.depth > 0)
+        self._add_depth_points(kf, idx)
+        frame.points = kf.points.copy()
+        return self._after_init(frame, kf)
+
+    def _initialize_mono(self, frame: SlamFrame) -> KeyFrame | None:
+        frame.w2c = None
+        res = self.mono_init.try_initialize(frame)
+        if res is None:
+            return None
+        m = self.sys.map
+        ref = self.mono_init.ref
+        ref.w2c = np.eye(4)
+        frame.w2c = res.w2c
+        kf0 = KeyFrame(m.new_kf_id(), ref, ref.w2c)
+        kf1 = KeyFrame(m.new_kf_id(), frame, frame.w2c)
+        m.add_keyframe(kf0)
+        m.add_keyframe(kf1)
+        pids = m.add_points(res.points, kf0, res.idx_ref)
+        for p, i in zip(pids.tolist(), res.idx_cur.tolist()):
+            m.add_obs(p, kf1, i)
+        m.update_geometry(pids)
+        m.update_descriptors(pids)
+        m.update_connections(kf0)
+        m.update_connections(kf1)
+        self.sys.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=20)
+        # scale: median depth of the first keyframe = 1
+        _, p0 = m.kf_point_ids(kf0)
+        depth = transform(kf0.w2c, m.pos[p0])[:, 2]
+        _, p1 = m.kf_point_ids(kf1)
+        if len(p1) < self.sys.cfg.init.min_triangulated or np.median(depth) <= 0:
+            self.sys.log(f"frame {frame.index}: monocular initialization rejected, resetting")
+            self.sys.reset_map()
+            return None
+        s = 1.0 / float(np.median(depth))
+        kf1.w2c[:3, 3] *= s
+        m.pos[p0] *= s
+        frame.w2c = kf1.w2c.copy()
+        frame.points = kf1.points.copy()
+        self.sys.mapper.register_initial([kf0, kf1], pids)
+        self.mono_init.reset()
+        self.sys.record_initial_keyframe(kf0)
+        return self._after_init(frame, kf1)
+
+    def _after_init(self, frame: SlamFrame, kf: KeyFrame) -> KeyFrame:
+        self.state = "ok"
+        self.lost_since = None
+        self.velocity = None
+        self.ref_kf = kf.kf_id
+        self.last_kf_frame = frame.index
+        self.last = frame
+        self.last_good_w2c = frame.w2c
+        self._local_key = None
+        return kf
+
+    def _add_depth_points(self, kf: KeyFrame, idx: np.ndarray) -> np.ndarray:
+        """Back-project keypoints idx of kf (with depth) into new map points -> ids."""
+        K = self.sys.K
+        d = kf.depth[idx]
+        uv = kf.kp.uv[idx]
+        pc = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d, (uv[:, 1] - K[1, 2]) / K[1, 1] * d, d], 1)
+        pw = transform(inv_se3(kf.w2c), pc)
+        pids = self.sys.map.add_points(pw, kf, idx)
+        self.sys.mapper.add_recent(pids)
+        return pids
+
+    # ------------------------------------------------------------------ frame-to-frame
+    def _track_motion(self, frame: SlamFrame) -> bool:
+        frame.w2c = orthonormalize(self.velocity @ self.last.w2c)
+        th = self.cfg.window_motion if self.sys.sensor == "mono" else self.cfg.window_motion_stereo
+        n = self._search_last(frame, th)
+        if n < self.cfg.min_matches_motion:
+            frame.points[:] = -1
+            n = self._search_last(frame, 2 * th)
+        if n < self.cfg.min_matches_motion:
+            frame.points[:] = -1
+            return False
+        return self._optimize(frame) >= 10
+
+    def _search_last(self, frame: SlamFrame, th: float) -> int:
+        m, last = self.sys.map, self.last
+        idx = np.flatnonzero(last.points >= 0)
+        pids = last.points[idx]
+        keep = m.valid[pids]
+        idx, pids = idx[keep], pids[keep]
+        if len(pids) == 0:
+            return 0
+        pc = transform(frame.w2c, m.pos[pids])
+        uv = project(self.sys.K, pc)
+        cam = self.sys.camera
+        ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        idx, pids, pc, uv = idx[ok], pids[ok], pc[ok], uv[ok]
+        oct_ = last.kp.octave[idx]
+        radius = th * self.sys.scales[oct_]
+        ur = uv[:, 0] - self.sys.bf / pc[:, 2] if self.sys.sensor != "mono" else None
+        q, k = search_projection(frame, uv, m.desc[pids], oct_, radius, oct_ - 1, oct_ + 1, ur,
+                                 max_dist=TH_HIGH, ratio=1.0, angle=last.kp.angle[idx])
+        frame.points[k] = pids[q]
+        return len(q)
+
+    def _track_reference(self, frame: SlamFrame) -> bool:
+        """Descriptor matching with the reference keyframe: optimisation from the last pose (ORB-SLAM),
+        else PnP RANSAC on looser matches (wide baselines, repetitive texture)."""
+        m = self.sys.map
+        ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
+        if ref is None or self.last is None:
+            return False
+        frame.points[:] = -1
+        fi, pids = match_frame_to_kf(frame, ref, m.valid, ratio=0.7, max_dist=TH_HIGH // 2)
+        if len(fi) >= 15:
+            frame.points[fi] = pids
+            frame.w2c = self.last.w2c.copy()
+            if self._optimize(frame) >= max(10, len(fi) // 2):
+                return True
+        fi, pids = match_frame_to_kf(frame, ref, m.valid, ratio=0.9, max_dist=TH_HIGH // 2)
+        return len(fi) >= 15 and self._pnp(frame, fi, pids) >= 10
+
+    def _pnp(self, frame: SlamFrame, fi: np.ndarray, pids: np.ndarray) -> int:
+        """PnP RANSAC + refinement from the matches frame keypoints fi <-> points pids."""
+        frame.points[:] = -1
+        frame.outlier[:] = False
+        w2c, inl = pnp_ransac(self.sys.map.pos[pids], frame.kp.uv[fi], self.sys.K,
+                              reproj=np.sqrt(5.991) * 2, seed=self.sys.seed + frame.index)
+        if w2c is None or inl.sum() < 10:
+            return 0
+        frame.points[fi[inl]] = pids[inl]
+        frame.w2c = w2c
+        return self._optimize(frame)
+
+    def _optimize(self, frame: SlamFrame) -> int:
+        """Motion-only optimisation of frame.w2c on its matches; marks outliers; -> inliers."""
+        m = self.sys.map
+        idx = np.flatnonzero(frame.points >= 0)
+        pids = frame.points[idx]
+        ur = frame.ur[idx] if self.sys.sensor != "mono" else None
+        w2c, inl = refine_pose(frame.w2c, m.pos[pids], frame.kp.uv[idx], ur,
+                               1.0 / self.sys.sigma2[frame.kp.octave[idx]], self.sys.K, self.sys.bf,
+                               ur_sigma=self.sys.ur_sigma)
+        frame.w2c = w2c
+        frame.outlier[:] = False
+        frame.outlier[idx[~inl]] = True
+        return int(inl.sum())
+
+    # ------------------------------------------------------------------ local map
+    def _update_local_map(self, frame: SlamFrame) -> None:
+        m = self.sys.map
+        pids = frame.points[(frame.points >= 0) & ~frame.outlier]
+        pids = pids[m.valid[pids]]
+        votes: dict[int, int] = {}
+        for p in pids.tolist():
+            for k in m.obs[p]:
+                votes[k] = votes.get(k, 0) + 1
+        votes = {k: v for k, v in votes.items() if k in m.kfs}
+        if not votes:
+            return
+        self.ref_kf = max(votes, key=lambda k: (votes[k], k))
+        order = sorted(votes, key=lambda k: (-votes[k], k))
+        cap = self.cfg.local_kfs
+        local = list(order[:cap])
+        seen = set(local)
+        for k in order:
+            if len(local) >= cap:
+                break
+            kf = m.kfs[k]
+            extra = kf.covisible(10) + sorted(kf.children) + ([kf.parent] if kf.parent is not None else [])
+            for n in extra:
+                if n in m.kfs and n not in seen and len(local) < cap:
+                    local.append(n)
+                    seen.add(n)
+        key = (tuple(sorted(local)), m.version)
+        if key != self._local_key:
+            allp = np.concatenate([m.kfs[k].points for k in local])
+            allp = np.unique(allp[allp >= 0])
+            self._local_pids = allp[m.valid[allp]]
+            self._local_key = key
+        self._local_kfs = local
+
+    def _track_local_map(self, frame: SlamFrame, th: float | None = None) -> bool:
+        m = self.sys.map
+        self._update_local_map(frame)
+        frame.points[frame.outlier] = -1
+        frame.outlier[:] = False
+        self._search_local(frame, th if th is not None else self._local_th(frame))
+        n = self._optimize(frame)
+        inl = frame.points[(frame.points >= 0) & ~frame.outlier]
+        np.add.at(m.found, inl, 1)
+        recent = frame.index - self.last_reloc_frame < 30
+        need = self.cfg.min_inliers_reloc if recent else self.cfg.min_inliers
+        return n >= need
+
+    def _local_th(self, frame: SlamFrame) -> float:
+        th = self.cfg.local_map_th
+        if self.sys.sensor == "rgbd":
+            th *= 3
+        if frame.index - self.last_reloc_frame < 2:
+            th *= 5
+        return th
+
+    def _search_local(self, frame: SlamFrame, th: float) -> int:
+        m, cam = self.sys.map, self.sys.camera
+        pids = self._local_pids
+        pids = pids[m.valid[pids]]
+        pids = np.setdiff1d(pids, frame.points[frame.points >= 0], assume_unique=False)
+        if len(pids) == 0:
+            return 0
+        P = m.pos[pids]
+        pc = transform(frame.w2c, P)
+        uv = project(self.sys.K, pc)
+        C = cam_center(frame.w2c)
+        PO = P - C
+        dist = np.linalg.norm(PO, axis=1)
+        cos = (PO * m.normal[pids]).sum(1) / np.maximum(dist, 1e-12)
+        ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) \
+            & (uv[:, 1] < cam.height) & (dist >= 0.8 * m.dmin[pids]) & (dist <= 1.2 * m.dmax[pids]) & (cos >= 0.5)
+        pids, pc, uv, dist, cos = pids[ok], pc[ok], uv[ok], dist[ok], cos[ok]
+        m.visible[pids] += 1
+        level = m.predict_level(pids, dist)
+        radius = th * np.where(cos > 0.998, 2.5, 4.0) * self.sys.scales[level]
+        ur = uv[:, 0] - self.sys.bf / pc[:, 2] if self.sys.sensor != "mono" else None
+        q, k = search_projection(frame, uv, m.desc[pids], level, radius, level - 1, level, ur,
+                                 max_dist=TH_HIGH, ratio=0.8)
+        frame.points[k] = pids[q]
+        return len(q)
+
+    # ------------------------------------------------------------------ relocalization
+    def _relocalize(self, frame: SlamFrame) -> bool:
+        m, sysm = self.sys.map, self.sys
+        bow = sysm.bow_of(frame.kp.desc)
+        cands = sysm.kfdb.candidates(bow, set(), 0.0, {k: kf.covisible(10) for k, kf in m.kfs.items()},
+                                     max_out=self.cfg.reloc_candidates)
+        for c in cands:
+            kf = m.kfs.get(c)
+            if kf is None:
+                continue
+            frame.points[:] = -1
+            fi, pids = match_frame_to_kf(frame, kf, m.valid, ratio=0.9, max_dist=TH_HIGH // 2)
+            if len(fi) < self.cfg.reloc_min_matches:
+                continue
+            if self._pnp(frame, fi, pids) < 10:
+                continue
+            frame.points[frame.outlier] = -1
+            frame.outlier[:] = False
+            self.last_reloc_frame = frame.index
+            if self._track_local_map(frame, th=self.cfg.local_map_th * 5):
+                sysm.log(f"frame {frame.index}: relocalized against keyframe {c}")
+                return True
+        frame.points[:] = -1
+        frame.w2c = None
+        return False
+
+    def on_map_corrected(self) -> None:
+        """Keyframes moved (loop, global BA): recompose the last frame's pose from its keyframe."""
+        self._local_key = None
+        if self.last is None or self.last.w2c is None:
+            return
+        rec = self.sys._traj.get(self.last.index)
+        if rec is None:
+            return
+        base = self.sys.map.kf_pose(rec[1])
+        if base is not None:
+            self.last.w2c = base.copy() if rec[0] == "kf" else rec[2] @ base
+            self.last_good_w2c = self.last.w2c
+
+    # ------------------------------------------------------------------ keyframes
+    def _need_keyframe(self, frame: SlamFrame) -> bool:
+        m, cfg, sysm = self.sys.map, self.cfg, self.sys
+        if not sysm.accepts_keyframes() and frame.index - self.last_kf_frame < cfg.kf_max_gap:
+            return False
+        if frame.index - self.last_reloc_frame < 2:
+            return False
+        ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
+        if ref is None:
+            return True
+        min_obs = 3 if len(m.kfs) > 2 else 2
+        _, rp = m.kf_point_ids(ref)
+        n_ref = int((m.n_obs[rp] >= min_obs).sum())
+        tracked = (frame.points >= 0) & ~frame.outlier
+        n_inl = int(tracked.sum())
+        need_close = False
+        if sysm.sensor != "mono":
+            close = (frame.depth > 0) & (frame.depth < sysm.th_depth)
+            n_tc = int((close & tracked).sum())
+            n_nc = int((close & ~tracked).sum())
+            need_close = n_tc < cfg.kf_close_tracked and n_nc > cfg.kf_close_untracked
+        ratio = cfg.kf_ref_ratio_mono if sysm.sensor == "mono" else cfg.kf_ref_ratio
+        gap = frame.index - self.last_kf_frame
+        c1a = gap >= cfg.kf_max_gap
+        c1b = gap >= cfg.kf_min_gap and sysm.mapping_idle()
+        c1c = sysm.sensor != "mono" and (n_inl < 0.25 * n_ref or need_close)
+        # coverage: the tracked points fell below a share of the best count since the last keyframe
+        self._max_inl = max(self._max_inl, n_inl)
+        low_cover = n_inl < cfg.kf_track_ratio * self._max_inl
+        c2 = (n_inl < n_ref * ratio or need_close or low_cover) and n_inl > 15
+        return (c1a or c1b or c1c) and c2
+
+    def _create_keyframe(self, frame: SlamFrame) -> KeyFrame:
+        m = self.sys.map
+        frame.points[frame.outlier] = -1
+        frame.outlier[:] = False
+        kf = KeyFrame(m.new_kf_id(), frame, frame.w2c)
+        m.add_keyframe(kf)
+        if self.sys.sensor != "mono":
+            free = np.flatnonzero((frame.depth > 0) & (kf.points < 0))
+            if self.cfg.rgbd_new_points != "all":
+                order = free[np.argsort(frame.depth[free], kind="stable")]
+                close = frame.depth[order] < self.sys.th_depth
+                close[: min(100, len(close))] = True
+                free = np.sort(order[close])
+            self._add_depth_points(kf, free)
+            frame.points = kf.points.copy()
+        self.ref_kf = kf.kf_id
+        self.last_kf_frame = frame.index
+        self._max_inl = 0
+        return kf
