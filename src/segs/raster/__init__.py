@@ -91,8 +91,7 @@ def rasterize(
         means2d.retain_grad()
     if background is None:
         background = torch.zeros(3, dtype=means.dtype, device=means.device)
-    image, depth_acc, alpha = impl.rasterize_pixels(
+    image, depth, alpha = impl.rasterize_pixels(
         means2d, proj.conics, colors, opacities, proj.depths, proj.radii, width, height, background
     )
-    depth = depth_acc / alpha.clamp(min=1e-10)
     return Render(image, depth, alpha, means2d, proj.radii, backend=name)

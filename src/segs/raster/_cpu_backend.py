@@ -73,7 +73,7 @@ def project(means, quats, scales, viewmat, K, width, height, near, far) -> Proje
 
 
 class _RasterizeCpu(torch.autograd.Function):
-    """(means2d, conics, colors, opacities, depths, background) -> (image, depth_acc, alpha)."""
+    """(means2d, conics, colors, opacities, depths, background) -> (image, depth, alpha)."""
 
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, background, radii, width, height):
@@ -100,9 +100,8 @@ class _RasterizeCpu(torch.autograd.Function):
         ext = load_extension()
         n, (h, w) = ctx.n, ctx.hw
         grads_out = [_f32(g) for g in (g_image, g_depth, g_alpha)]
-        zeros = dict(dtype=torch.float32)
-        g = [torch.zeros(n, 2, **zeros), torch.zeros(n, 3, **zeros), torch.zeros(n, 3, **zeros),
-             torch.zeros(n, **zeros), torch.zeros(n, **zeros), torch.zeros(3, **zeros)]
+        g = [torch.empty(n, 2), torch.empty(n, 3), torch.empty(n, 3), torch.empty(n),
+             torch.empty(n), torch.empty(3)]  # the kernel writes every entry
         ext.backward(
             ctx.state, *[t.data_ptr() for t in grads_out], *[t.data_ptr() for t in g],
             torch.get_num_threads(),
@@ -113,7 +112,7 @@ class _RasterizeCpu(torch.autograd.Function):
 def rasterize_pixels(means2d, conics, colors, opacities, depths, radii, width, height, background):
     """Same contract as :func:`segs.raster._torch_backend.rasterize_pixels`, in C++.
 
-    Returns (image [H,W,3], depth_acc [H,W], alpha [H,W]) in the dtype of ``means2d``.
+    Returns (image [H,W,3], depth [H,W] expected z, alpha [H,W]) in the dtype of ``means2d``.
     """
     dtype = means2d.dtype
     out = _RasterizeCpu.apply(

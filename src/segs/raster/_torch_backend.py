@@ -7,8 +7,8 @@ Autograd differentiates everything. The algorithm is 3D-GS's, written tile by ti
 2. per tile, per pixel: ``alpha = min(0.99, opacity * exp(-sigma))`` with
    ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy``; skip ``alpha < 1/255``; stop before the
    Gaussian that would bring the transmittance below 1e-4;
-3. ``image = sum w_i c_i + T_final * background``, ``depth_acc = sum w_i z_i``,
-   ``alpha = 1 - T_final`` with ``w_i = alpha_i T_i``.
+3. ``image = sum w_i c_i + T_final * background``, ``alpha = 1 - T_final``,
+   ``depth = sum w_i z_i / max(alpha, 1e-10)`` (expected z) with ``w_i = alpha_i T_i``.
 
 Gaussians of a tile are processed in chunks (``CHUNK``) with the transmittance carried over, so
 the memory autograd keeps grows with the work done, and a tile stops once every pixel is done.
@@ -27,6 +27,7 @@ TILE = 16
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+ALPHA_EPS = 1e-10  # expected depth divides by max(alpha, ALPHA_EPS)
 CHUNK = 64
 # Above this many listed pixel-Gaussian pairs, tiles are recomputed in backward (checkpoint)
 # instead of keeping every intermediate: autograd would otherwise need tens of GB.
@@ -99,10 +100,10 @@ def _composite_tile(px, py, means2d, conics, opacities, feats):
 
 
 def rasterize_pixels(means2d, conics, colors, opacities, depths, radii, width, height, background):
-    """Composite projected Gaussians into (image [H,W,3], depth_acc [H,W], alpha [H,W]).
+    """Composite projected Gaussians into (image [H,W,3], depth [H,W], alpha [H,W]).
 
     means2d [N,2], conics [N,3], colors [N,3], opacities [N], depths [N], radii [N] (0 = culled),
-    background [3]. ``depth_acc`` is the alpha-weighted sum of z (not normalised).
+    background [3]. ``depth`` is the expected z, sum w_i z_i / max(alpha, 1e-10).
     """
     tw, th = math.ceil(width / TILE), math.ceil(height / TILE)
     ids, starts = bin_gaussians(means2d, depths, radii, width, height)
@@ -127,4 +128,5 @@ def rasterize_pixels(means2d, conics, colors, opacities, depths, radii, width, h
         tiles.append(torch.cat([rgb, acc[:, 3:4], (1 - T)[:, None]], dim=1))
     out = torch.stack(tiles).reshape(th, tw, TILE, TILE, 5).permute(0, 2, 1, 3, 4)
     out = out.reshape(th * TILE, tw * TILE, 5)[:height, :width]
-    return out[..., :3], out[..., 3], out[..., 4]
+    alpha = out[..., 4]
+    return out[..., :3], out[..., 3] / alpha.clamp(min=ALPHA_EPS), alpha

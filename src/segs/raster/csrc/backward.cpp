@@ -52,8 +52,12 @@ void load_tile(const State& st, const BackwardIn& in, int tile, TileGrad& s, dou
     s.gr[i] = inside ? in.g_image[3 * pix] : 0.f;
     s.gg[i] = inside ? in.g_image[3 * pix + 1] : 0.f;
     s.gb[i] = inside ? in.g_image[3 * pix + 2] : 0.f;
-    s.gd[i] = inside ? in.g_depth[pix] : 0.f;
-    const float ga = inside ? in.g_alpha[pix] : 0.f;
+    // expected depth = depth_acc / max(alpha, eps): chain rule into depth_acc and alpha
+    const float alpha = 1.f - T, gz = inside ? in.g_depth[pix] : 0.f;
+    const float denom = alpha < ALPHA_EPS ? ALPHA_EPS : alpha;
+    s.gd[i] = gz / denom;
+    float ga = inside ? in.g_alpha[pix] : 0.f;
+    if (alpha >= ALPHA_EPS) ga -= gz * st.depth_acc[o + i] / (denom * denom);
     s.gt[i] = T * (ga - (s.gr[i] * st.bg[0] + s.gg[i] * st.bg[1] + s.gb[i] * st.bg[2]));
     s.last[i] = inside ? st.n_contrib[o + i] : 0;
     bg[0] += T * s.gr[i];
@@ -130,12 +134,19 @@ void backprop_tile(const State& st, int tile, TileGrad& s, float* grad) {
   }
 }
 
-// Sum the per-thread buffers and scatter to the caller's per-Gaussian gradient arrays.
+// Zero the caller's per-Gaussian gradient arrays, then add the per-thread buffers into them.
 void scatter(const State& st, const std::vector<float>& bufs, int nt, const BackwardOut& out,
              int threads) {
   const int m = static_cast<int>(st.gs.size());
   const size_t stride = static_cast<size_t>(m) * N_GRAD;
-#pragma omp parallel for schedule(static) num_threads(threads)
+#pragma omp parallel num_threads(threads)
+  {
+#pragma omp for schedule(static)
+  for (int i = 0; i < st.n; ++i) {
+    out.means2d[2 * i] = out.means2d[2 * i + 1] = out.opacities[i] = out.depths[i] = 0.f;
+    for (int q = 0; q < 3; ++q) out.conics[3 * i + q] = out.colors[3 * i + q] = 0.f;
+  }
+#pragma omp for schedule(static)
   for (int pos = 0; pos < m; ++pos) {
     float g[N_GRAD] = {0.f};
     for (int t = 0; t < nt; ++t)
@@ -147,6 +158,7 @@ void scatter(const State& st, const std::vector<float>& bufs, int nt, const Back
     out.opacities[id] = g[5];
     for (int q = 0; q < 3; ++q) out.colors[3 * id + q] = g[6 + q];
     out.depths[id] = g[9];
+  }
   }
 }
 

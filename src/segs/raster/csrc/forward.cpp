@@ -85,11 +85,12 @@ int64_t rasterize_tile(const State& st, int tile, TileAcc& a) {
 }
 
 void write_tile(const State& st, int tile, const TileAcc& a, const ForwardOut& out,
-                float* final_T, int32_t* n_contrib) {
+                float* final_T, int32_t* n_contrib, float* depth_acc) {
   const int x0 = (tile % st.tiles_x) * TILE, y0 = (tile / st.tiles_x) * TILE;
   for (int i = 0; i < TILE_PIX; ++i) {
     final_T[i] = std::fabs(a.T[i]);
     n_contrib[i] = a.last[i];
+    depth_acc[i] = a.d[i];
     const int x = x0 + i % TILE, y = y0 + i / TILE;
     if (x >= st.width || y >= st.height) continue;
     const size_t pix = static_cast<size_t>(y) * st.width + x;
@@ -97,8 +98,9 @@ void write_tile(const State& st, int tile, const TileAcc& a, const ForwardOut& o
     out.image[3 * pix] = a.r[i] + T * st.bg[0];
     out.image[3 * pix + 1] = a.g[i] + T * st.bg[1];
     out.image[3 * pix + 2] = a.b[i] + T * st.bg[2];
-    out.depth[pix] = a.d[i];
-    out.alpha[pix] = 1.f - T;
+    const float alpha = 1.f - T;
+    out.depth[pix] = a.d[i] / (alpha < ALPHA_EPS ? ALPHA_EPS : alpha);
+    out.alpha[pix] = alpha;
   }
 }
 
@@ -115,6 +117,7 @@ void forward(const ForwardIn& in, const ForwardOut& out, State& st, int threads)
   const int n_tiles = st.n_tiles();
   st.final_T.assign(static_cast<size_t>(n_tiles) * TILE_PIX, 1.f);
   st.n_contrib.assign(static_cast<size_t>(n_tiles) * TILE_PIX, 0);
+  st.depth_acc.assign(static_cast<size_t>(n_tiles) * TILE_PIX, 0.f);
   int64_t evals = 0;
 #pragma omp parallel num_threads(threads) reduction(+ : evals)
   {
@@ -123,7 +126,8 @@ void forward(const ForwardIn& in, const ForwardOut& out, State& st, int threads)
     for (int tile = 0; tile < n_tiles; ++tile) {
       evals += rasterize_tile(st, tile, acc);
       const size_t o = static_cast<size_t>(tile) * TILE_PIX;
-      write_tile(st, tile, acc, out, st.final_T.data() + o, st.n_contrib.data() + o);
+      write_tile(st, tile, acc, out, st.final_T.data() + o, st.n_contrib.data() + o,
+                 st.depth_acc.data() + o);
     }
   }
   st.evaluations = evals;

@@ -15,6 +15,7 @@ constexpr int TILE_PIX = TILE * TILE;
 constexpr float ALPHA_MIN = 1.0f / 255.0f;
 constexpr float ALPHA_MAX = 0.99f;
 constexpr float T_MIN = 1e-4f;
+constexpr float ALPHA_EPS = 1e-10f;  // expected depth divides by max(alpha, ALPHA_EPS)
 constexpr int N_GRAD = 10;  // per Gaussian: d u, v, conic a, b, c, opacity, r, g, b, z
 
 // One visible Gaussian, stored in front-to-back order (one cache line).
@@ -37,6 +38,7 @@ struct State {
   std::vector<int32_t> isect;       // [I] positions into gs, per tile front to back
   std::vector<float> final_T;       // [n_tiles * 256] transmittance left per pixel
   std::vector<int32_t> n_contrib;   // [n_tiles * 256] list length up to the last contributor
+  std::vector<float> depth_acc;     // [n_tiles * 256] sum of w_i z_i (before normalising)
   int64_t evaluations = 0;          // pixel-Gaussian evaluations of the forward pass
 
   int n_tiles() const { return tiles_x * tiles_y; }
@@ -55,7 +57,7 @@ struct ForwardIn {
 
 struct ForwardOut {
   float* image;  // [H,W,3]
-  float* depth;  // [H,W] accumulated alpha-weighted z
+  float* depth;  // [H,W] expected z: sum w_i z_i / max(alpha, 1e-10)
   float* alpha;  // [H,W] 1 - final transmittance
 };
 
@@ -65,8 +67,8 @@ struct BackwardIn {
   const float* g_alpha;  // [H,W]
 };
 
-struct BackwardOut {
-  float* means2d;     // [N,2] (zero-initialised by the caller)
+struct BackwardOut {  // every entry is written (zero for Gaussians not drawn)
+  float* means2d;     // [N,2]
   float* conics;      // [N,3]
   float* colors;      // [N,3]
   float* opacities;   // [N]

@@ -1,0 +1,163 @@
+"""Benchmark segs.raster backends: forward, backward and forward+backward milliseconds.
+
+    python bench/raster.py                      # cpu and torch (and cuda if available)
+    python bench/raster.py --runs 20 --backends cpu --build-times
+
+Scenes come from segs.raster.scenes.random_scene (seed 0): 320x240 with 20k Gaussians and
+640x480 with 100k. Each backend does --warmup untimed iterations, then --runs timed ones; the
+table shows medians. The loss uses image, depth and alpha, so backward covers all three.
+"Mpair/s" is the nominal work, (tile, Gaussian) pairs of the 3-sigma tile lists x 256 pixels,
+divided by the forward+backward time: the same numerator for every backend.
+Figures are also written as JSON (default outputs/bench/raster.json).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from segs.raster import _cpu_backend, _torch_backend, available_backends, rasterize
+from segs.raster._projection import project
+from segs.raster.scenes import random_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def machine() -> dict:
+    model = platform.processor()
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        model = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if "Model name" in ln)
+    except (OSError, subprocess.CalledProcessError, StopIteration):
+        pass
+    return {
+        "cpu_model": model, "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__, "python": platform.python_version(),
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "loadavg_start": os.getloadavg(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+    }
+
+
+def nominal_pairs(scene) -> int:
+    """(tile, Gaussian) pairs of the 3-sigma tile lists x 256: the work 3D-GS schedules."""
+    with torch.no_grad():
+        p = project(scene.means, scene.quats, scene.scales, scene.viewmat, scene.K,
+                    scene.width, scene.height, 0.01, 100.0)
+        ids, _ = _torch_backend.bin_gaussians(p.means2d, p.depths, p.radii, scene.width, scene.height)
+    return int(ids.numel()) * _torch_backend.TILE**2
+
+
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def time_backend(scene, backend: str, runs: int, warmup: int) -> dict:
+    device = "cuda" if backend == "cuda" else "cpu"
+    params = [p.detach().to(device).requires_grad_(True) for p in scene.params()]
+    cam = (scene.viewmat.to(device), scene.K.to(device))
+    h, w = scene.height, scene.width
+    weights = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1)).to(device)
+    fwd, bwd = [], []
+    for i in range(warmup + runs):
+        for p in params:
+            p.grad = None
+        _sync(device)
+        t0 = time.perf_counter()
+        r = rasterize(*params, *cam, w, h, backend=backend)
+        _sync(device)
+        t1 = time.perf_counter()
+        loss = (r.image * weights).sum() + 0.1 * r.depth.sum() + r.alpha.sum()
+        loss.backward()
+        _sync(device)
+        t2 = time.perf_counter()
+        if i >= warmup:
+            fwd.append(t1 - t0)
+            bwd.append(t2 - t1)
+    med = lambda xs: 1000.0 * statistics.median(xs)  # noqa: E731
+    out = {"forward_ms": med(fwd), "backward_ms": med(bwd),
+           "fwd_bwd_ms": med([a + b for a, b in zip(fwd, bwd)]), "runs": runs}
+    if backend == "cpu":
+        out["cpu_work"] = dict(_cpu_backend.LAST_STATS)
+    return out
+
+
+def build_times() -> dict:
+    """Cold build into an empty cache, then the load time of the cached build (fresh processes)."""
+    code = ("import time; t = time.perf_counter(); from segs.raster._build import load_extension; "
+            "load_extension(); print(time.perf_counter() - t)")
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "SEGS_RASTER_CACHE_DIR": tmp}
+        run = lambda: float(subprocess.run([sys.executable, "-c", code], env=env, check=True,  # noqa: E731
+                                           capture_output=True, text=True).stdout.split()[-1])
+        return {"cold_build_s": run(), "cached_load_s": run()}
+
+
+def print_table(results: list[dict]) -> None:
+    head = f"{'backend':8} {'size':>9} {'N':>7} {'fwd ms':>9} {'bwd ms':>9} {'f+b ms':>9} {'x torch':>8} {'Mpair/s':>8}"
+    print(head)
+    print("-" * len(head))
+    for r in results:
+        speed = f"{r['speedup_vs_torch']:.1f}" if r.get("speedup_vs_torch") else "-"
+        print(f"{r['backend']:8} {r['size']:>9} {r['n']:>7} {r['forward_ms']:9.1f} "
+              f"{r['backward_ms']:9.1f} {r['fwd_bwd_ms']:9.1f} {speed:>8} {r['mpairs_per_s']:8.1f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--backends", default=",".join(b for b in ("cuda", "cpu", "torch")
+                                                   if b in available_backends()))
+    ap.add_argument("--sizes", default="320x240:20000,640x480:100000")
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    ap.add_argument("--build-times", action="store_true", help="also time a cold build")
+    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "raster.json"))
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    info = {"machine": machine(), "results": []}
+    backends = args.backends.split(",")
+    for spec in args.sizes.split(","):
+        size, n = spec.split(":")
+        width, height = map(int, size.split("x"))
+        scene = random_scene(int(n), width, height, seed=0)
+        pairs = nominal_pairs(scene)
+        rows = {}
+        for b in backends:
+            print(f"# {b} {size} N={n} ...", file=sys.stderr, flush=True)
+            rows[b] = {"backend": b, "size": size, "n": int(n), "nominal_pairs": pairs,
+                       **time_backend(scene, b, args.runs, args.warmup)}
+            rows[b]["mpairs_per_s"] = pairs / rows[b]["fwd_bwd_ms"] / 1e3
+        for row in rows.values():
+            if "torch" in rows:
+                row["speedup_vs_torch"] = rows["torch"]["fwd_bwd_ms"] / row["fwd_bwd_ms"]
+            info["results"].append(row)
+    if args.build_times:
+        info["build"] = build_times()
+    info["machine"]["loadavg_end"] = os.getloadavg()
+    m = info["machine"]
+    print(f"{m['cpu_model']}, {m['cpu_count']} CPUs, torch {m['torch']} with {m['torch_threads']} "
+          f"threads, {m['date']}, load {m['loadavg_start'][0]:.1f} -> {m['loadavg_end'][0]:.1f}")
+    print_table(info["results"])
+    if "build" in info:
+        print(f"cold build {info['build']['cold_build_s']:.1f} s, "
+              f"cached load {info['build']['cached_load_s']:.2f} s")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(info, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
