@@ -94,9 +94,10 @@ def time_backend(scene, backend: str, runs: int, warmup: int) -> dict:
 
 
 def build_times() -> dict:
-    """Cold build into an empty cache, then the load time of the cached build (fresh processes)."""
-    code = ("import time; t = time.perf_counter(); from segs.raster._build import load_extension; "
-            "load_extension(); print(time.perf_counter() - t)")
+    """Cold build into an empty cache, then the load of the cached build (fresh processes, after
+    ``import torch``, which alone takes about a second)."""
+    code = ("import time, torch; t = time.perf_counter(); from segs.raster._build import "
+            "load_extension; load_extension(); print(time.perf_counter() - t)")
     with tempfile.TemporaryDirectory() as tmp:
         env = {**os.environ, "SEGS_RASTER_CACHE_DIR": tmp}
         run = lambda: float(subprocess.run([sys.executable, "-c", code], env=env, check=True,  # noqa: E731

@@ -29,7 +29,6 @@ struct TileGrad {
   alignas(64) float gd[TILE_PIX];
   alignas(64) float gt[TILE_PIX];  // T_final (g_alpha - g_image . bg)
   alignas(64) int32_t last[TILE_PIX];
-  vf acc[N_GRAD];
   int32_t span_last[2 * TILE];  // per span (bit 16 h + r): largest n_contrib of its pixels
   int32_t order[2 * TILE];      // span bits by decreasing span_last
 };
@@ -73,8 +72,18 @@ void load_tile(const State& st, const BackwardIn& in, int tile, TileGrad& s, dou
             [&s](int a, int b) { return s.span_last[a] > s.span_last[b]; });
 }
 
+// One Gaussian's gradient sums over the spans of a tile (a local, so it stays in registers).
+struct Acc {
+  vf v[N_GRAD];
+};
+
+// Per-thread gradient buffer stride: one cache line per Gaussian.
+constexpr int GRAD_STRIDE = 16;
+static_assert(GRAD_STRIDE >= N_GRAD, "gradient record too small");
+
 // Undo Gaussian `p` (list position kk, 1-based) on the span at offset o; add its gradients.
-inline void backprop_span(const Packed& p, int32_t kk, vf px, float dy, TileGrad& s, int o) {
+inline void backprop_span(const Packed& p, int32_t kk, vf px, float dy, TileGrad& s, int o,
+                          Acc& a) {
   const vf dx = p.u - px;
   const vf sg = span_sigma(p, px, dy);
   const vf e = vexp(-sg);
@@ -93,16 +102,16 @@ inline void backprop_span(const Packed& p, int32_t kk, vf px, float dy, TileGrad
                 load(s.gt + o) * inv;
   const vi free = valid & (raw <= splat<vf>(ALPHA_MAX));
   const vf gsig = free ? -al * ga : zero;
-  s.acc[0] += gsig * (dx * (2.f * p.ha) + p.b * dy);
-  s.acc[1] += gsig * (dx * p.b + 2.f * p.hc * dy);
-  s.acc[2] += gsig * dx * dx * 0.5f;
-  s.acc[3] += gsig * dx * dy;
-  s.acc[4] += gsig * (0.5f * dy * dy);
-  s.acc[5] += free ? e * ga : zero;
-  s.acc[6] += w * gr;
-  s.acc[7] += w * gg;
-  s.acc[8] += w * gb;
-  s.acc[9] += w * gd;
+  a.v[0] += gsig * (dx * (2.f * p.ha) + p.b * dy);
+  a.v[1] += gsig * (dx * p.b + 2.f * p.hc * dy);
+  a.v[2] += gsig * dx * dx * 0.5f;
+  a.v[3] += gsig * dx * dy;
+  a.v[4] += gsig * (0.5f * dy * dy);
+  a.v[5] += free ? e * ga : zero;
+  a.v[6] += w * gr;
+  a.v[7] += w * gg;
+  a.v[8] += w * gb;
+  a.v[9] += w * gd;
   store(s.yr + o, valid ? al * p.r + om * yr : yr);
   store(s.yg + o, valid ? al * p.g + om * yg : yg);
   store(s.yb + o, valid ? al * p.bl + om * yb : yb);
@@ -118,19 +127,24 @@ void backprop_tile(const State& st, int tile, TileGrad& s, float* grad) {
   int next = 0;
   for (int32_t kk = s.span_last[s.order[0]]; kk >= 1; --kk) {
     while (next < 2 * TILE && s.span_last[s.order[next]] >= kk) active |= 1u << s.order[next++];
-    if (kk > PREFETCH) __builtin_prefetch(&st.gs[st.isect[start + kk - 1 - PREFETCH]]);
+    if (kk > PREFETCH) {
+      const int32_t ahead = st.isect[start + kk - 1 - PREFETCH];
+      __builtin_prefetch(&st.gs[ahead]);
+      __builtin_prefetch(grad + static_cast<size_t>(ahead) * GRAD_STRIDE, 1);
+    }
     const int32_t pos = st.isect[start + kk - 1];
     const Packed& p = st.gs[pos];
     uint32_t m = span_mask(p, x0, y0) & active;
     if (!m) continue;
-    for (vf& v : s.acc) v = splat<vf>(0.f);
+    Acc a;
+    for (vf& v : a.v) v = splat<vf>(0.f);
     for (; m; m &= m - 1) {
       const int bit = __builtin_ctz(m);
       const float dy = p.v - (static_cast<float>(y0 + (bit & (TILE - 1))) + 0.5f);
-      backprop_span(p, kk, px[bit >> 4], dy, s, span_offset(bit));
+      backprop_span(p, kk, px[bit >> 4], dy, s, span_offset(bit), a);
     }
-    float* dst = grad + static_cast<size_t>(pos) * N_GRAD;
-    for (int q = 0; q < N_GRAD; ++q) dst[q] += hsum(s.acc[q]);
+    float* dst = grad + static_cast<size_t>(pos) * GRAD_STRIDE;
+    for (int q = 0; q < N_GRAD; ++q) dst[q] += hsum(a.v[q]);
   }
 }
 
@@ -138,7 +152,7 @@ void backprop_tile(const State& st, int tile, TileGrad& s, float* grad) {
 void scatter(const State& st, const std::vector<float>& bufs, int nt, const BackwardOut& out,
              int threads) {
   const int m = static_cast<int>(st.gs.size());
-  const size_t stride = static_cast<size_t>(m) * N_GRAD;
+  const size_t stride = static_cast<size_t>(m) * GRAD_STRIDE;
 #pragma omp parallel num_threads(threads)
   {
 #pragma omp for schedule(static)
@@ -150,7 +164,7 @@ void scatter(const State& st, const std::vector<float>& bufs, int nt, const Back
   for (int pos = 0; pos < m; ++pos) {
     float g[N_GRAD] = {0.f};
     for (int t = 0; t < nt; ++t)
-      for (int q = 0; q < N_GRAD; ++q) g[q] += bufs[t * stride + pos * N_GRAD + q];
+      for (int q = 0; q < N_GRAD; ++q) g[q] += bufs[t * stride + pos * GRAD_STRIDE + q];
     const int id = st.gs[pos].id;
     out.means2d[2 * id] = g[0];
     out.means2d[2 * id + 1] = g[1];
@@ -166,7 +180,7 @@ void scatter(const State& st, const std::vector<float>& bufs, int nt, const Back
 
 void backward(const State& st, const BackwardIn& in, const BackwardOut& out, int threads) {
   const int n_tiles = st.n_tiles();
-  const size_t stride = st.gs.size() * N_GRAD;
+  const size_t stride = st.gs.size() * GRAD_STRIDE;
   threads = std::max(1, std::min(threads, n_tiles));
   std::vector<float> bufs(stride * threads, 0.f);
   double bg[3] = {0.0, 0.0, 0.0};

@@ -30,10 +30,12 @@ static const vf LANE = {0.f, 1.f, 2.f, 3.f, 4.f, 5.f, 6.f, 7.f};
 static const vf16 ROW = {0.f, 1.f, 2.f, 3.f, 4.f, 5.f, 6.f, 7.f,
                          8.f, 9.f, 10.f, 11.f, 12.f, 13.f, 14.f, 15.f};
 
+typedef float vf4 __attribute__((vector_size(16)));
+
+// Sum of the 8 lanes (pairwise: 4 + 2 + 1 adds).
 static inline float hsum(vf v) {
-  float s = 0.f;
-  for (int j = 0; j < SPAN; ++j) s += v[j];
-  return s;
+  const vf4 s = __builtin_shufflevector(v, v, 0, 1, 2, 3) + __builtin_shufflevector(v, v, 4, 5, 6, 7);
+  return (s[0] + s[2]) + (s[1] + s[3]);
 }
 
 // exp(x) for x <= 0: Cephes range reduction and degree-5 polynomial, relative error ~1e-7
