@@ -16,3 +16,7 @@ class DataError(UserInputError):
 
 class ConfigError(UserInputError):
     """A configuration value is unknown or out of range."""
+
+
+class LimitError(UserInputError):
+    """A configured resource limit (memory) would be exceeded; the run stopped cleanly."""

@@ -13,10 +13,11 @@ from pathlib import Path
 import hydra
 import lightning as L
 import torch
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
-from segs.callbacks import SlamBridge, save_atomic
+from segs.callbacks import GracefulInterrupt, SlamBridge, save_atomic
 from segs.config import instantiate, make_sequence, user_errors_exit, validate
 from segs.errors import DataError
 from segs.evaluation import evaluate
@@ -61,10 +62,18 @@ def run(cfg: DictConfig) -> dict:
     sequence, frontend, module, bridge, trainer = build(cfg)
     loader = DataLoader(StepDataset(cfg.trainer.max_steps), batch_size=None, shuffle=False)
     t_fit = time.perf_counter()
-    # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
-    trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
+    stopper = next((c for c in trainer.callbacks if isinstance(c, GracefulInterrupt)), None)
+    try:
+        # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
+        trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
+    except SIGTERMException:  # Lightning's own SIGTERM handling stopped the loop (exit code 0 otherwise)
+        if stopper is not None and stopper.checkpoint is None:
+            stopper.stop(trainer)
+        raise SystemExit(143) from None
     fit_s = time.perf_counter() - t_fit
-    if trainer.interrupted:
+    if stopper is not None and stopper.exit_code is not None:
+        raise SystemExit(stopper.exit_code)
+    if trainer.interrupted:  # Lightning caught a KeyboardInterrupt itself (no handler installed)
         raise SystemExit(130)
     bridge.complete_sequence()
     save_atomic(trainer, out / "checkpoints" / "final.ckpt")

@@ -16,6 +16,7 @@ import torch
 from tqdm import tqdm
 
 from segs.data.frame import Frame, Sequence
+from segs.errors import DataError
 from segs.modules.keyframes import Keyframe, to_uint8
 from segs.slam.base import Frontend, MapUpdate
 
@@ -55,20 +56,23 @@ class SlamBridge(L.Callback):
         if self._restored:
             return
         bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
-        update = MapUpdate()
-        while self.cursor < len(self.sequence) and len(self.frontend.keyframe_frames()) < self.min_initial_keyframes:
+        while self.cursor < len(self.sequence) and (
+            len(self.frontend.keyframe_frames()) < self.min_initial_keyframes or len(pl_module.store) == 0
+        ):
             self._feed_one()
-            update = update.merge(self.frontend.poll())
+            self._push(self.frontend.poll(), pl_module)
             bar.update(1)
         bar.close()
         if self.cursor >= len(self.sequence):
-            update = update.merge(self._finish())
+            self._push(self._finish(), pl_module)
         if self.frames_per_step is None:
             steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
             self.frames_per_step = (len(self.sequence) - self.cursor) / steps
-        self._push(update, pl_module)
         if len(pl_module.store) == 0:
-            raise RuntimeError("the frontend produced no training keyframe; nothing to map")
+            raise DataError(
+                f"data: no training keyframe in the {len(self.sequence)} frames of {getattr(self.sequence, 'name', 'the sequence')} "
+                f"({len(self.frontend.lost_frames())} frames could not be tracked); nothing to map"
+            )
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self.credit += self.frames_per_step
@@ -157,6 +161,13 @@ class SlamBridge(L.Callback):
             camera=frame.camera,
             depth=torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None else None,
         )
+
+    def write_partial_trajectory(self, path) -> None:
+        """The estimated trajectory so far (TUM format), e.g. when training is interrupted."""
+        from segs.trajectory import estimated_c2w, write_tum
+
+        idx, c2w = estimated_c2w(self.frontend.trajectory())
+        write_tum(path, self.sequence.timestamps[idx], c2w)
 
     def tracking_fps(self) -> float | None:
         """Frames per second of frontend.process (tracking and, single-threaded, local mapping)."""

@@ -6,6 +6,7 @@ add_keyframes, update_poses, add_points, correct_map.
 from __future__ import annotations
 
 import logging
+import random
 import time
 
 import lightning as L
@@ -135,7 +136,11 @@ class MappingModule(L.LightningModule):
 
     # -- checkpoints ----------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["segs"] = {"store": self.store.state_dict(), "scene_extent": self.model.scene_extent}
+        checkpoint["segs"] = {
+            "store": self.store.state_dict(),
+            "scene_extent": self.model.scene_extent,
+            "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+        }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         sd = {k.removeprefix("model."): v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
@@ -144,3 +149,7 @@ class MappingModule(L.LightningModule):
         if "store" in extra:
             self.store.load_state_dict(extra["store"])
         self.model.scene_extent = extra.get("scene_extent", self.model.scene_extent)
+        if "rng" in extra:
+            torch.set_rng_state(extra["rng"]["torch"])
+            np.random.set_state(extra["rng"]["numpy"])
+            random.setstate(extra["rng"]["python"])
