@@ -49,13 +49,17 @@ def machine() -> dict:
     }
 
 
-def nominal_pairs(scene) -> int:
-    """(tile, Gaussian) pairs of the 3-sigma tile lists x 256: the work 3D-GS schedules."""
+def scene_stats(scene, backend: str) -> dict:
+    """Visible Gaussians, nominal pairs ((tile, Gaussian) pairs of the 3-sigma tile lists x 256,
+    the work 3D-GS schedules) and how much of the image is covered."""
     with torch.no_grad():
         p = project(scene.means, scene.quats, scene.scales, scene.viewmat, scene.K,
                     scene.width, scene.height, 0.01, 100.0)
         ids, _ = _torch_backend.bin_gaussians(p.means2d, p.depths, p.radii, scene.width, scene.height)
-    return int(ids.numel()) * _torch_backend.TILE**2
+        r = rasterize(*scene.params(), scene.viewmat, scene.K, scene.width, scene.height,
+                      backend=backend)
+    return {"visible": int((p.radii > 0).sum()), "nominal_pairs": int(ids.numel()) * 256,
+            "alpha_mean": float(r.alpha.mean()), "alpha_gt_0.99": float((r.alpha > 0.99).float().mean())}
 
 
 def _sync(device: str) -> None:
@@ -134,11 +138,13 @@ def main() -> None:
         size, n = spec.split(":")
         width, height = map(int, size.split("x"))
         scene = random_scene(int(n), width, height, seed=0)
-        pairs = nominal_pairs(scene)
+        stats = scene_stats(scene, backends[0])
+        pairs = stats["nominal_pairs"]
+        info.setdefault("scenes", {})[spec] = stats
         rows = {}
         for b in backends:
             print(f"# {b} {size} N={n} ...", file=sys.stderr, flush=True)
-            rows[b] = {"backend": b, "size": size, "n": int(n), "nominal_pairs": pairs,
+            rows[b] = {"backend": b, "size": size, "n": int(n),
                        **time_backend(scene, b, args.runs, args.warmup)}
             rows[b]["mpairs_per_s"] = pairs / rows[b]["fwd_bwd_ms"] / 1e3
         for row in rows.values():
@@ -152,6 +158,9 @@ def main() -> None:
     print(f"{m['cpu_model']}, {m['cpu_count']} CPUs, torch {m['torch']} with {m['torch_threads']} "
           f"threads, {m['date']}, load {m['loadavg_start'][0]:.1f} -> {m['loadavg_end'][0]:.1f}")
     print_table(info["results"])
+    for spec, st in info["scenes"].items():
+        print(f"scene {spec}: {st['visible']} visible, {st['nominal_pairs'] / 1e6:.1f} M nominal "
+              f"pairs, mean alpha {st['alpha_mean']:.3f}, alpha > 0.99 on {st['alpha_gt_0.99']:.1%}")
     if "build" in info:
         print(f"cold build {info['build']['cold_build_s']:.1f} s, "
               f"cached load {info['build']['cached_load_s']:.2f} s")

@@ -24,7 +24,7 @@ from types import ModuleType
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("bindings.cpp", "projection.cpp", "binning.cpp", "forward.cpp", "backward.cpp")
-HEADERS = ("raster.h", "projection.h", "simd.h")
+HEADERS = ("raster.h", "projection.h", "simd.h", "pool.h")
 _lock = threading.Lock()
 _module: ModuleType | None = None
 _error: str | None = None

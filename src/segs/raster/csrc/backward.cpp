@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "pool.h"
 #include "raster.h"
 #include "simd.h"
 
@@ -182,7 +183,9 @@ void backward(const State& st, const BackwardIn& in, const BackwardOut& out, int
   const int n_tiles = st.n_tiles();
   const size_t stride = st.gs.size() * GRAD_STRIDE;
   threads = std::max(1, std::min(threads, n_tiles));
-  std::vector<float> bufs(stride * threads, 0.f);
+  Scratch<float> scratch;
+  std::vector<float>& bufs = scratch.v;
+  bufs.assign(stride * threads, 0.f);
   double bg[3] = {0.0, 0.0, 0.0};
   int used = 1;
 #pragma omp parallel num_threads(threads)

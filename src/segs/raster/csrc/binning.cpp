@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstring>
 
+#include "pool.h"
 #include "raster.h"
 
 namespace segs_raster {
@@ -66,8 +67,12 @@ bool prepare_one(const ForwardIn& in, int i, int tw, int th, Rect& rect) {
 // Stable LSD radix sort of (key, value) by key, 8 bits per pass; skips constant digits.
 void radix_sort(std::vector<uint32_t>& keys, std::vector<int32_t>& vals) {
   const size_t n = keys.size();
-  std::vector<uint32_t> k2(n);
-  std::vector<int32_t> v2(n);
+  Scratch<uint32_t> k2_;
+  Scratch<int32_t> v2_;
+  std::vector<uint32_t>& k2 = k2_.v;
+  std::vector<int32_t>& v2 = v2_.v;
+  k2.resize(n);
+  v2.resize(n);
   for (int shift = 0; shift < 32; shift += 8) {
     size_t count[257] = {0};
     for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 255u) + 1];
@@ -134,13 +139,19 @@ void fill_tiles(State& st, const std::vector<Rect>& rects, int threads) {
 
 void bin_gaussians(const ForwardIn& in, State& st, int threads) {
   const int n = in.n, tw = st.tiles_x, th = st.tiles_y;
-  std::vector<Rect> rect_all(n);
-  std::vector<uint8_t> visible(n);
+  Scratch<Rect> rect_all_, rects_;
+  Scratch<uint8_t> visible_;
+  Scratch<uint32_t> keys_;
+  Scratch<int32_t> ids_;
+  std::vector<Rect>& rect_all = rect_all_.v;
+  std::vector<uint8_t>& visible = visible_.v;
+  rect_all.resize(n);
+  visible.resize(n);
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int i = 0; i < n; ++i)
     visible[i] = prepare_one(in, i, tw, th, rect_all[i]);
-  std::vector<uint32_t> keys;
-  std::vector<int32_t> ids;
+  std::vector<uint32_t>& keys = keys_.v;
+  std::vector<int32_t>& ids = ids_.v;
   for (int i = 0; i < n; ++i) {
     if (!visible[i]) continue;
     uint32_t k;
@@ -151,7 +162,8 @@ void bin_gaussians(const ForwardIn& in, State& st, int threads) {
   radix_sort(keys, ids);
   const int m = static_cast<int>(ids.size());
   st.gs.resize(m);
-  std::vector<Rect> rects(m);
+  std::vector<Rect>& rects = rects_.v;
+  rects.resize(m);
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int j = 0; j < m; ++j) {
     st.gs[j] = pack(in, ids[j]);

@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "pool.h"
 #include "raster.h"
 #include "simd.h"
 
@@ -105,6 +106,19 @@ void write_tile(const State& st, int tile, const TileAcc& a, const ForwardOut& o
 }
 
 }  // namespace
+
+State::State()
+    : gs(take_vector<Packed>()),
+      tile_start(take_vector<int32_t>()),
+      isect(take_vector<int32_t>()),
+      final_T(take_vector<float>()),
+      n_contrib(take_vector<int32_t>()),
+      depth_acc(take_vector<float>()) {}
+
+State::~State() {
+  give_vector(gs), give_vector(tile_start), give_vector(isect);
+  give_vector(final_T), give_vector(n_contrib), give_vector(depth_acc);
+}
 
 void forward(const ForwardIn& in, const ForwardOut& out, State& st, int threads) {
   st.n = in.n;

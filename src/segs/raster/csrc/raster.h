@@ -42,6 +42,10 @@ struct State {
   int64_t evaluations = 0;          // pixel-Gaussian evaluations of the forward pass
 
   int n_tiles() const { return tiles_x * tiles_y; }
+  State();
+  ~State();  // hands the buffers back to the pool (pool.h)
+  State(const State&) = delete;
+  State& operator=(const State&) = delete;
 };
 
 struct ForwardIn {
