@@ -78,8 +78,9 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "segs.train", *args], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
-def test_cli_unknown_experiment_fails_with_one_clear_line(tmp_path):
-    r = _cli("+experiment=does_not_exist", f"paths.log_dir={tmp_path}", cwd=tmp_path)
+@pytest.mark.parametrize("override", ["+experiment=does_not_exist", "+ablation=does_not_exist"])
+def test_cli_unknown_experiment_or_ablation_fails_with_one_clear_line(tmp_path, override):
+    r = _cli(override, f"paths.log_dir={tmp_path}", cwd=tmp_path)
     assert r.returncode != 0
     assert "does_not_exist" in r.stderr and "Traceback" not in r.stderr
     assert not list(tmp_path.rglob("metrics.json"))

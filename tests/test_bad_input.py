@@ -1,0 +1,124 @@
+"""The bad-input catalogue (docs/reliability.md): one line naming the file or key, exit 2,
+no traceback, and no metrics.json (nothing that looks like a finished result)."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from segs.config import REPO_ROOT, compose, user_errors_exit
+from segs.train import run
+
+SAMPLE = REPO_ROOT / "datasets" / "tum_fr3_cabinet_kf"
+FAST = ["data.downscale=4", "trainer.max_steps=5", "logger=none", "callbacks.slam_bridge.progress=false",
+        "~callbacks.progress_bar", "trainer.enable_progress_bar=false", "slam=known_poses", "eval.progress=false"]  # fmt: skip
+
+
+def _copy(tmp_path: Path, n: int = 12) -> Path:
+    """The first n frames of the bundled sample (index files cut to match)."""
+    root = tmp_path / "rgbd_dataset_freiburg3_copy"
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        lines = (SAMPLE / name).read_text().splitlines()
+        head = [line for line in lines if line.startswith("#")]
+        body = [line for line in lines if line and not line.startswith("#")][:n]
+        (root / name).write_text("\n".join(head + body) + "\n")
+        if name != "groundtruth.txt":
+            for line in body:
+                rel = line.split()[1]
+                shutil.copy(SAMPLE / rel, root / rel)
+    return root
+
+
+def _fails(tmp_path, capsys, *overrides: str) -> str:
+    out = tmp_path / "run"
+    cfg = compose(FAST + list(overrides), output_dir=str(out))
+    with pytest.raises(SystemExit) as exc:
+        with user_errors_exit():
+            run(cfg)
+    assert exc.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    assert "Traceback" not in err[0]
+    assert not (out / "metrics.json").exists()
+    return err[0]
+
+
+def _index_line(root: Path, name: str, i: int) -> tuple[int, list[str]]:
+    lines = (root / name).read_text().splitlines()
+    rows = [k for k, line in enumerate(lines) if line and not line.startswith("#")]
+    return rows[i], lines
+
+
+def test_missing_dataset_folder(tmp_path, capsys):
+    msg = _fails(tmp_path, capsys, f"data.root={tmp_path / 'nope'}")
+    assert str(tmp_path / "nope") in msg
+
+
+def test_index_file_naming_a_missing_image(tmp_path, capsys):
+    root = _copy(tmp_path)
+    (root / "rgb" / "0003_rgb_raw.jpg").unlink()
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert "0003_rgb_raw.jpg" in msg
+
+
+def test_corrupt_image(tmp_path, capsys):
+    root = _copy(tmp_path)
+    (root / "rgb" / "0002_rgb_raw.jpg").write_bytes(b"not a jpeg at all")
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert "0002_rgb_raw.jpg" in msg
+
+
+def test_depth_of_another_size(tmp_path, capsys):
+    root = _copy(tmp_path)
+    cv2.imwrite(str(root / "depth" / "0001_depth_raw.png"), np.zeros((100, 120), np.uint16))
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert "0001_depth_raw.png" in msg
+
+
+def test_timestamps_that_do_not_associate(tmp_path, capsys):
+    root = _copy(tmp_path)
+    lines = (root / "depth.txt").read_text().splitlines()
+    shifted = [f"{float(line.split()[0]) + 5.0:.4f} {line.split()[1]}" if line and not line.startswith("#") else line for line in lines]
+    (root / "depth.txt").write_text("\n".join(shifted) + "\n")
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert "depth.txt" in msg or "rgb.txt" in msg
+
+
+@pytest.mark.parametrize("bad", ["0.5 0.9 0.9 0.9 0.9", "nan 0 0 0 1"])  # tz qx qy qz qw
+def test_bad_ground_truth(tmp_path, capsys, bad):
+    root = _copy(tmp_path)
+    k, lines = _index_line(root, "groundtruth.txt", 2)
+    parts = lines[k].split()
+    lines[k] = " ".join(parts[:1] + parts[1:3] + bad.split())
+    (root / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert "groundtruth.txt" in msg
+
+
+def test_empty_sequence(tmp_path, capsys):
+    root = _copy(tmp_path)
+    for name in ("rgb.txt", "depth.txt"):
+        (root / name).write_text("# nothing here\n")
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert "rgb.txt" in msg or str(root) in msg
+
+
+def test_camera_the_dataset_cannot_provide(tmp_path, capsys):
+    root = _copy(tmp_path)
+    (root / "depth.txt").unlink()
+    msg = _fails(tmp_path, capsys, f"data.root={root}", "camera=rgbd")
+    assert "rgbd" in msg and "depth" in msg
+    msg = _fails(tmp_path, capsys, "camera=stereo")
+    assert "stereo" in msg
+
+
+@pytest.mark.parametrize("override,key", [("model.voxel_size=-0.001", "model.voxel_size"), ("model.k=0", "model.k"),
+                                          ("model.lr.offsets=-0.1", "model.lr.offsets"), ("data.downscale=0", "data.downscale"),
+                                          ("trainer.max_steps=-5", "trainer.max_steps")])  # fmt: skip
+def test_out_of_range_values(tmp_path, capsys, override, key):
+    assert key in _fails(tmp_path, capsys, override)
