@@ -35,7 +35,8 @@ class BuildError(RuntimeError):
 
 
 def _cflags() -> list[str]:
-    flags = ["-O3", "-fopenmp", "-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math"]
+    flags = ["-O3", "-fopenmp", "-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math",
+             "-Wno-psabi"]
     if platform.machine() in ("x86_64", "AMD64"):
         flags.append("-march=native")
     return flags

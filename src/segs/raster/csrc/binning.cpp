@@ -102,7 +102,8 @@ Packed pack(const ForwardIn& in, int i) {
   p.z = in.depths[i];
   p.level = regular(in.conics[3 * i], p.b, in.conics[3 * i + 2]) ? cull_level(p.opacity) : -1.f;
   p.id = i;
-  p.pad[0] = p.pad[1] = p.pad[2] = p.pad[3] = 0.f;
+  p.inv_2ha = p.level >= 0.f ? 1.f / (2.f * p.ha) : 0.f;
+  p.pad[0] = p.pad[1] = p.pad[2] = 0.f;
   return p;
 }
 

@@ -26,7 +26,8 @@ struct alignas(64) Packed {
   float r, g, bl, z;  // colour and camera depth
   float level;        // alpha >= 1/255 needs sigma <= level (ln(255 opacity) + margin); -1: unknown
   int32_t id;         // index in the caller's arrays
-  float pad[4];
+  float inv_2ha;      // 1 / (2 ha), for span_mask
+  float pad[3];
 };
 
 // Everything the backward pass needs; owned by the Python autograd context.

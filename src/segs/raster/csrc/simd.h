@@ -6,6 +6,9 @@
 #pragma once
 
 #include <cstdint>
+#if defined(__AVX512F__) || defined(__AVX2__)
+#include <immintrin.h>
+#endif
 
 #include "raster.h"
 
@@ -69,10 +72,21 @@ static inline vf span_sigma(const Packed& p, vf px, float dy) {
 // min(x, 0.99): 3D-GS alpha clamp.
 static inline vf clamp_alpha(vf x) { return x < splat<vf>(ALPHA_MAX) ? x : splat<vf>(ALPHA_MAX); }
 
+// Lane j of a comparison result (0 or -1) -> bit j. The only intrinsics in this code: the
+// generic loop compiles to 16 extractions.
 static inline uint32_t bits16(vi16 m) {
+#if defined(__AVX512F__)
+  const __m512i v = reinterpret_cast<__m512i&>(m);
+  return _mm512_test_epi32_mask(v, v);
+#elif defined(__AVX2__)
+  const __m256i* h = reinterpret_cast<const __m256i*>(&m);
+  return static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(h[0]))) |
+         static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(h[1]))) << 8;
+#else
   uint32_t b = 0;
   for (int j = 0; j < TILE; ++j) b |= static_cast<uint32_t>(m[j] & 1) << j;
   return b;
+#endif
 }
 
 // Spans of the tile at (x0, y0) where Gaussian p can reach alpha >= 1/255: bit 16 h + r is
@@ -81,7 +95,7 @@ static inline uint32_t bits16(vi16 m) {
 static inline uint32_t span_mask(const Packed& p, int x0, int y0) {
   if (!(p.level >= 0.f)) return 0xffffffffu;  // degenerate conic: no culling
   const vf16 dy = p.v - (ROW + (static_cast<float>(y0) + 0.5f));
-  const vf16 px_star = p.u + p.b * dy / (2.f * p.ha);  // where d sigma / d px = 0
+  const vf16 px_star = p.u + p.b * p.inv_2ha * dy;  // where d sigma / d px = 0
   uint32_t out = 0;
   for (int h = 0; h < 2; ++h) {
     const float lo = static_cast<float>(x0 + SPAN * h) + 0.5f, hi = lo + (SPAN - 1);
