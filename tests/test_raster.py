@@ -20,6 +20,15 @@ needs_cuda = pytest.mark.skipif(
     "cuda" not in available_backends(), reason="needs CUDA and gsplat (pip install 'segs[gpu]')"
 )
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one thread is as fast and immune to a busy machine (OpenMP barriers)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 OUT_TOL = 1e-4  # max abs difference of image, depth, alpha
 GRAD_TOL = 1e-3  # max abs difference of a gradient relative to its largest entry
 BG = (0.3, 0.6, 0.9)
@@ -72,6 +81,18 @@ def assert_backends_agree(scene: Scene, background=None):
 def test_cpu_matches_torch_on_random_scenes(seed):
     a, _ = assert_backends_agree(small_scene(400, seed=seed), background=BG)
     assert a.alpha.mean() > 0.5  # a covered image, not an empty one
+
+
+@needs_cpu
+def test_cpu_threads_agree():
+    """Tiles are shared out dynamically; the result must not depend on the thread count."""
+    s = small_scene(3000, width=96, height=80, seed=12)
+    a, ga = render_with_grads(s, "cpu", BG)
+    torch.set_num_threads(2)
+    b, gb = render_with_grads(s, "cpu", BG)
+    assert torch.equal(a.image, b.image) and torch.equal(a.alpha, b.alpha)
+    for name in ga:
+        torch.testing.assert_close(ga[name], gb[name], rtol=1e-5, atol=1e-6 * ga[name].abs().max())
 
 
 @needs_cpu

@@ -11,6 +11,15 @@ from segs.raster.scenes import random_scene
 needs_cpu = pytest.mark.skipif("cpu" not in available_backends(), reason="C++ backend unavailable")
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one thread is as fast and immune to a busy machine (OpenMP barriers)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def weighted(outputs, seed=0):
     """A scalar loss with fixed random weights: gradcheck then tests every input entry once."""
     flat = torch.cat([o.flatten() for o in outputs])
