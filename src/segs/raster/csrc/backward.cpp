@@ -5,6 +5,8 @@
 //   d image / d alpha_i = T_i (c_i - Y_i) - T_final / (1 - alpha_i) bg
 //   d alpha / d alpha_i = T_final / (1 - alpha_i)
 // with Y_i the (normalised) colour behind i: Y_n = 0, Y_{i-1} = alpha_i c_i + (1 - alpha_i) Y_i.
+// Only g . Y_i is needed (g = d loss / d (image, depth) of the pixel), so a pixel keeps the
+// scalar Q_i = g . Y_i with the same recursion instead of Y_i itself.
 // Each thread sums per-Gaussian gradients in its own buffer; buffers are reduced at the end.
 #include <omp.h>
 
@@ -20,10 +22,7 @@ namespace {
 
 struct TileGrad {
   alignas(64) float T[TILE_PIX];   // transmittance behind the current Gaussian
-  alignas(64) float yr[TILE_PIX];  // colour / depth behind it (normalised)
-  alignas(64) float yg[TILE_PIX];
-  alignas(64) float yb[TILE_PIX];
-  alignas(64) float yd[TILE_PIX];
+  alignas(64) float q[TILE_PIX];   // g . (colour, depth) behind it (normalised)
   alignas(64) float gr[TILE_PIX];  // d loss / d image, depth, and the T_final term
   alignas(64) float gg[TILE_PIX];
   alignas(64) float gb[TILE_PIX];
@@ -48,7 +47,7 @@ void load_tile(const State& st, const BackwardIn& in, int tile, TileGrad& s, dou
     const size_t pix = inside ? static_cast<size_t>(y) * st.width + x : 0;
     const float T = st.final_T[o + i];
     s.T[i] = T;
-    s.yr[i] = s.yg[i] = s.yb[i] = s.yd[i] = 0.f;
+    s.q[i] = 0.f;
     s.gr[i] = inside ? in.g_image[3 * pix] : 0.f;
     s.gg[i] = inside ? in.g_image[3 * pix + 1] : 0.f;
     s.gb[i] = inside ? in.g_image[3 * pix + 2] : 0.f;
@@ -73,9 +72,12 @@ void load_tile(const State& st, const BackwardIn& in, int tile, TileGrad& s, dou
             [&s](int a, int b) { return s.span_last[a] > s.span_last[b]; });
 }
 
-// One Gaussian's gradient sums over the spans of a tile (a local, so it stays in registers).
+// One Gaussian's lane sums over the spans of a tile (a local, so it stays in registers).
+// Screen-space terms are kept as moments of gsig = d loss / d sigma, combined in finish():
+// d sigma / d u = 2 ha dx + b dy, d v = b dx + 2 hc dy, d a = dx^2 / 2, d b = dx dy, d c = dy^2 / 2.
 struct Acc {
-  vf v[N_GRAD];
+  vf sdx, sdx2, sdy, sdxdy, sdy2;  // sums of gsig dx, gsig dx^2, gsig dy, gsig dx dy, gsig dy^2
+  vf op, r, g, b, z;               // d opacity, d colour, d depth
 };
 
 // Per-thread gradient buffer stride: one cache line per Gaussian.
@@ -94,30 +96,42 @@ inline void backprop_span(const Packed& p, int32_t kk, vf px, float dy, TileGrad
   const vi valid = (splat_i(kk) <= load_i(s.last + o)) & (sg >= zero) &
                    (al >= splat<vf>(ALPHA_MIN));
   const vf om = 1.f - al, inv = 1.f / om;
-  const vf T = load(s.T + o);
+  const vf T = load(s.T + o), q = load(s.q + o);
   const vf Ti = valid ? T * inv : T;
   const vf w = valid ? al * Ti : zero;
   const vf gr = load(s.gr + o), gg = load(s.gg + o), gb = load(s.gb + o), gd = load(s.gd + o);
-  const vf yr = load(s.yr + o), yg = load(s.yg + o), yb = load(s.yb + o), yd = load(s.yd + o);
-  const vf ga = Ti * ((p.r - yr) * gr + (p.g - yg) * gg + (p.bl - yb) * gb + (p.z - yd) * gd) +
-                load(s.gt + o) * inv;
+  const vf cg = gr * p.r + gg * p.g + gb * p.bl + gd * p.z;  // g . (colour, depth) of p
+  const vf ga = Ti * (cg - q) + load(s.gt + o) * inv;
   const vi free = valid & (raw <= splat<vf>(ALPHA_MAX));
   const vf gsig = free ? -al * ga : zero;
-  a.v[0] += gsig * (dx * (2.f * p.ha) + p.b * dy);
-  a.v[1] += gsig * (dx * p.b + 2.f * p.hc * dy);
-  a.v[2] += gsig * dx * dx * 0.5f;
-  a.v[3] += gsig * dx * dy;
-  a.v[4] += gsig * (0.5f * dy * dy);
-  a.v[5] += free ? e * ga : zero;
-  a.v[6] += w * gr;
-  a.v[7] += w * gg;
-  a.v[8] += w * gb;
-  a.v[9] += w * gd;
-  store(s.yr + o, valid ? al * p.r + om * yr : yr);
-  store(s.yg + o, valid ? al * p.g + om * yg : yg);
-  store(s.yb + o, valid ? al * p.bl + om * yb : yb);
-  store(s.yd + o, valid ? al * p.z + om * yd : yd);
+  const vf gdx = gsig * dx;
+  a.sdx += gdx;
+  a.sdx2 += gdx * dx;
+  a.sdy += gsig * dy;
+  a.sdxdy += gdx * dy;
+  a.sdy2 += gsig * (dy * dy);
+  a.op += free ? e * ga : zero;
+  a.r += w * gr;
+  a.g += w * gg;
+  a.b += w * gb;
+  a.z += w * gd;
+  store(s.q + o, valid ? al * cg + om * q : q);
   store(s.T + o, Ti);
+}
+
+// Add one Gaussian's gradients (u, v, conic a, b, c, opacity, r, g, b, z) to its record.
+inline void finish(const Packed& p, const Acc& a, float* dst) {
+  const float sdx = hsum(a.sdx), sdy = hsum(a.sdy);
+  dst[0] += 2.f * p.ha * sdx + p.b * sdy;
+  dst[1] += p.b * sdx + 2.f * p.hc * sdy;
+  dst[2] += 0.5f * hsum(a.sdx2);
+  dst[3] += hsum(a.sdxdy);
+  dst[4] += 0.5f * hsum(a.sdy2);
+  dst[5] += hsum(a.op);
+  dst[6] += hsum(a.r);
+  dst[7] += hsum(a.g);
+  dst[8] += hsum(a.b);
+  dst[9] += hsum(a.z);
 }
 
 void backprop_tile(const State& st, int tile, TileGrad& s, float* grad) {
@@ -137,15 +151,13 @@ void backprop_tile(const State& st, int tile, TileGrad& s, float* grad) {
     const Packed& p = st.gs[pos];
     uint32_t m = span_mask(p, x0, y0) & active;
     if (!m) continue;
-    Acc a;
-    for (vf& v : a.v) v = splat<vf>(0.f);
+    Acc a = {};
     for (; m; m &= m - 1) {
       const int bit = __builtin_ctz(m);
       const float dy = p.v - (static_cast<float>(y0 + (bit & (TILE - 1))) + 0.5f);
       backprop_span(p, kk, px[bit >> 4], dy, s, span_offset(bit), a);
     }
-    float* dst = grad + static_cast<size_t>(pos) * GRAD_STRIDE;
-    for (int q = 0; q < N_GRAD; ++q) dst[q] += hsum(a.v[q]);
+    finish(p, a, grad + static_cast<size_t>(pos) * GRAD_STRIDE);
   }
 }
 
