@@ -26,37 +26,82 @@ struct TileAcc {
 };
 
 constexpr int PREFETCH = 8;  // list entries ahead: Packed records are scattered in memory
+constexpr int CHUNK = 32;    // Gaussians whose span masks are computed before compositing
 
 // Span index bit (16 h + r) <-> pixel offset in the tile arrays.
 inline int span_offset(int bit) { return (bit & (TILE - 1)) * TILE + (bit >> 4) * SPAN; }
 
-// Apply Gaussian `p` (list position `k`, 1-based) to one span of 8 pixels at offset `o`.
-inline void composite_span(const Packed& p, int32_t k, vf px, float dy, TileAcc& a, int o) {
-  const vf s = span_sigma(p, px, dy);
-  const vf al = clamp_alpha(p.opacity * vexp(-s));
-  const vf t = load(a.T + o);
-  const vi ok = (s >= splat<vf>(0.f)) & (al >= splat<vf>(ALPHA_MIN)) & (t > splat<vf>(0.f));
-  const vf next = t * (1.f - al);
+// The compositing state of one span, held in registers while a chunk of Gaussians is applied.
+struct Span {
+  vf T, r, g, b, d;
+  vi last;
+};
+
+// Apply Gaussian `p` (list position `k`, 1-based) to a span with pixel centres px, row offset dy.
+inline void composite(const Packed& p, int32_t k, vf px, float dy, Span& s) {
+  const vf sg = span_sigma(p, px, dy);
+  const vf al = clamp_alpha(p.opacity * vexp(-sg));
+  const vi ok = (sg >= splat<vf>(0.f)) & (al >= splat<vf>(ALPHA_MIN)) & (s.T > splat<vf>(0.f));
+  const vf next = s.T * (1.f - al);
   const vi take = ok & (next >= splat<vf>(T_MIN));
-  const vf w = take ? al * t : splat<vf>(0.f);
-  store(a.r + o, load(a.r + o) + w * p.r);
-  store(a.g + o, load(a.g + o) + w * p.g);
-  store(a.b + o, load(a.b + o) + w * p.bl);
-  store(a.d + o, load(a.d + o) + w * p.z);
-  store(a.T + o, take ? next : (ok ? -t : t));
-  store_i(a.last + o, take ? splat_i(k) : load_i(a.last + o));
+  const vf w = take ? al * s.T : splat<vf>(0.f);
+  s.r += w * p.r;
+  s.g += w * p.g;
+  s.b += w * p.bl;
+  s.d += w * p.z;
+  s.T = take ? next : (ok ? -s.T : s.T);
+  s.last = take ? splat_i(k) : s.last;
 }
 
 // Bit (16 h + r) set = that span still has a pixel accepting Gaussians.
 inline uint32_t live_spans(const float* T) {
   uint32_t live = 0;
-  for (int bit = 0; bit < 2 * TILE; ++bit) {
-    const vi on = load(T + span_offset(bit)) > splat<vf>(0.f);
-    int any = 0;
-    for (int j = 0; j < SPAN; ++j) any |= on[j];
-    live |= static_cast<uint32_t>(any != 0) << bit;
-  }
+  for (int bit = 0; bit < 2 * TILE; ++bit)
+    live |= static_cast<uint32_t>(any_positive(load(T + span_offset(bit)))) << bit;
   return live;
+}
+
+// One chunk of the tile's list: span masks first, then span by span with the state in
+// registers (the list position order is kept within each span). Returns the spans evaluated.
+int64_t composite_chunk(const State& st, int32_t c0, int32_t c1, int32_t start, int x0, int y0,
+                        uint32_t& live, TileAcc& a) {
+  const Packed* ptr[CHUNK];
+  uint32_t mask[CHUNK], any = 0;
+  uint8_t list[2 * TILE][CHUNK];
+  int count[2 * TILE] = {0};
+  const int n = c1 - c0;
+  for (int j = 0; j < n; ++j) {
+    if (c0 + j + PREFETCH < st.tile_start.back())
+      __builtin_prefetch(&st.gs[st.isect[c0 + j + PREFETCH]]);
+    ptr[j] = &st.gs[st.isect[c0 + j]];
+    mask[j] = span_mask(*ptr[j], x0, y0) & live;
+    any |= mask[j];
+  }
+  for (int j = 0; j < n; ++j)
+    for (uint32_t m = mask[j]; m; m &= m - 1) {
+      const int bit = __builtin_ctz(m);
+      list[bit][count[bit]++] = static_cast<uint8_t>(j);
+    }
+  const vf px[2] = {LANE + (x0 + 0.5f), LANE + (x0 + SPAN + 0.5f)};
+  int64_t spans = 0;
+  for (uint32_t m = any; m; m &= m - 1) {
+    const int bit = __builtin_ctz(m), o = span_offset(bit);
+    const float yc = static_cast<float>(y0 + (bit & (TILE - 1))) + 0.5f;
+    Span s{load(a.T + o), load(a.r + o), load(a.g + o), load(a.b + o), load(a.d + o),
+           load_i(a.last + o)};
+    for (int i = 0; i < count[bit]; ++i) {
+      const int j = list[bit][i];
+      composite(*ptr[j], c0 + j - start + 1, px[bit >> 4], ptr[j]->v - yc, s);
+      ++spans;
+      if (!any_positive(s.T)) {
+        live &= ~(1u << bit);
+        break;
+      }
+    }
+    store(a.T + o, s.T), store(a.r + o, s.r), store(a.g + o, s.g), store(a.b + o, s.b);
+    store(a.d + o, s.d), store_i(a.last + o, s.last);
+  }
+  return spans;
 }
 
 int64_t rasterize_tile(const State& st, int tile, TileAcc& a) {
@@ -68,20 +113,10 @@ int64_t rasterize_tile(const State& st, int tile, TileAcc& a) {
     a.last[i] = 0;
   }
   uint32_t live = live_spans(a.T);
-  const vf px[2] = {LANE + (x0 + 0.5f), LANE + (x0 + SPAN + 0.5f)};  // pixel centres
   const int32_t start = st.tile_start[tile], end = st.tile_start[tile + 1];
   int64_t spans = 0;
-  for (int32_t k = start; k < end && live; ++k) {
-    if (k + PREFETCH < end) __builtin_prefetch(&st.gs[st.isect[k + PREFETCH]]);
-    const Packed& p = st.gs[st.isect[k]];
-    for (uint32_t m = span_mask(p, x0, y0) & live; m; m &= m - 1) {
-      const int bit = __builtin_ctz(m);
-      const float dy = p.v - (static_cast<float>(y0 + (bit & (TILE - 1))) + 0.5f);
-      composite_span(p, k - start + 1, px[bit >> 4], dy, a, span_offset(bit));
-      ++spans;
-    }
-    if (((k - start) & 7) == 7) live = live_spans(a.T);
-  }
+  for (int32_t c0 = start; c0 < end && live; c0 += CHUNK)
+    spans += composite_chunk(st, c0, std::min(c0 + CHUNK, end), start, x0, y0, live, a);
   return spans * SPAN;
 }
 

@@ -6,7 +6,7 @@
 #pragma once
 
 #include <cstdint>
-#if defined(__AVX512F__) || defined(__AVX2__)
+#if defined(__AVX__)
 #include <immintrin.h>
 #endif
 
@@ -86,6 +86,19 @@ static inline uint32_t bits16(vi16 m) {
   uint32_t b = 0;
   for (int j = 0; j < TILE; ++j) b |= static_cast<uint32_t>(m[j] & 1) << j;
   return b;
+#endif
+}
+
+// Whether any lane is > 0.
+static inline bool any_positive(vf v) {
+#if defined(__AVX__)
+  return _mm256_movemask_ps(_mm256_cmp_ps(reinterpret_cast<__m256&>(v), _mm256_setzero_ps(),
+                                          _CMP_GT_OQ)) != 0;
+#else
+  const vi on = v > splat<vf>(0.f);
+  int any = 0;
+  for (int j = 0; j < SPAN; ++j) any |= on[j];
+  return any != 0;
 #endif
 }
 
