@@ -54,7 +54,8 @@ void project_forward(std::uintptr_t means, std::uintptr_t quats, std::uintptr_t 
                      std::uintptr_t depths, std::uintptr_t radii, int threads) {
   segs_raster::ProjectIn in{ptr<const float>(means),   ptr<const float>(quats),
                             ptr<const float>(scales),  ptr<const float>(viewmat),
-                            ptr<const float>(K), n, width, height, near, far};
+                            ptr<const float>(K), n, width, height, near, far, {}};
+  segs_raster::set_limits(in);
   segs_raster::ProjectOut out{ptr<float>(means2d), ptr<float>(conics), ptr<float>(depths),
                               ptr<int32_t>(radii)};
   segs_raster::project_forward(in, out, threads);
@@ -67,7 +68,8 @@ void project_backward(std::uintptr_t means, std::uintptr_t quats, std::uintptr_t
                       std::uintptr_t out_scales, int threads) {
   segs_raster::ProjectIn in{ptr<const float>(means),   ptr<const float>(quats),
                             ptr<const float>(scales),  ptr<const float>(viewmat),
-                            ptr<const float>(K), n, width, height, near, far};
+                            ptr<const float>(K), n, width, height, near, far, {}};
+  segs_raster::set_limits(in);
   segs_raster::ProjectGradIn g{ptr<const float>(g_means2d), ptr<const float>(g_conics),
                                ptr<const float>(g_depths)};
   segs_raster::ProjectGradOut out{ptr<float>(out_means), ptr<float>(out_quats),

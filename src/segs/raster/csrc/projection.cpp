@@ -28,7 +28,7 @@ M3 rotmat(float w, float x, float y, float z) {
 struct Proj {
   float q[4], qnorm;         // normalised quaternion and the norm used
   M3 Rq, M, cov_c;           // rotation, R S, camera covariance
-  float p[3], zs;            // camera point, z used for division (1 if culled by depth)
+  float p[3], zs, inv_z;     // camera point, z used for division (1 if culled by depth), 1/zs
   float cx_, cy_;            // clamped x/z, y/z used in the Jacobian
   bool clamp_x, clamp_y, in_depth;
   float J[2][3];
@@ -39,7 +39,8 @@ void compute(const ProjectIn& in, int i, Proj& s) {
   const float* qi = in.quats + 4 * i;
   const float nrm = std::sqrt(qi[0] * qi[0] + qi[1] * qi[1] + qi[2] * qi[2] + qi[3] * qi[3]);
   s.qnorm = std::max(nrm, 1e-12f);
-  for (int k = 0; k < 4; ++k) s.q[k] = qi[k] / s.qnorm;
+  const float inv_n = 1.f / s.qnorm;
+  for (int k = 0; k < 4; ++k) s.q[k] = qi[k] * inv_n;
   s.Rq = rotmat(s.q[0], s.q[1], s.q[2], s.q[3]);
   const float* sc = in.scales + 3 * i;
   for (int r = 0; r < 3; ++r)
@@ -57,19 +58,17 @@ void compute(const ProjectIn& in, int i, Proj& s) {
       s.cov_c.m[r][k] = VM[r][0] * VM[k][0] + VM[r][1] * VM[k][1] + VM[r][2] * VM[k][2];
   s.in_depth = s.p[2] >= in.near && s.p[2] <= in.far;
   s.zs = s.in_depth ? s.p[2] : 1.f;
-  const float fx = in.K[0], fy = in.K[4], cx = in.K[2], cy = in.K[5];
-  const float lxp = (in.width - cx) / fx + FOV_MARGIN * 0.5f * in.width / fx;
-  const float lxn = cx / fx + FOV_MARGIN * 0.5f * in.width / fx;
-  const float lyp = (in.height - cy) / fy + FOV_MARGIN * 0.5f * in.height / fy;
-  const float lyn = cy / fy + FOV_MARGIN * 0.5f * in.height / fy;
-  const float xz = s.p[0] / s.zs, yz = s.p[1] / s.zs;
+  const float fx = in.K[0], fy = in.K[4];
+  const float lxp = in.lim[0], lxn = in.lim[1], lyp = in.lim[2], lyn = in.lim[3];
+  s.inv_z = 1.f / s.zs;
+  const float xz = s.p[0] * s.inv_z, yz = s.p[1] * s.inv_z;
   s.cx_ = std::min(std::max(xz, -lxn), lxp);
   s.cy_ = std::min(std::max(yz, -lyn), lyp);
   s.clamp_x = s.cx_ != xz;
   s.clamp_y = s.cy_ != yz;
-  const float z = s.zs;
-  s.J[0][0] = fx / z, s.J[0][1] = 0.f, s.J[0][2] = -fx * s.cx_ / z;
-  s.J[1][0] = 0.f, s.J[1][1] = fy / z, s.J[1][2] = -fy * s.cy_ / z;
+  const float iz = s.inv_z;
+  s.J[0][0] = fx * iz, s.J[0][1] = 0.f, s.J[0][2] = -fx * s.cx_ * iz;
+  s.J[1][0] = 0.f, s.J[1][1] = fy * iz, s.J[1][2] = -fy * s.cy_ * iz;
   float JC[2][3];
   for (int r = 0; r < 2; ++r)
     for (int k = 0; k < 3; ++k)
@@ -93,19 +92,28 @@ int radius_of(const ProjectIn& in, const Proj& s, float u, float v) {
 
 }  // namespace
 
+// Jacobian clamp limits on x/z, y/z: the image plus FOV_MARGIN of the half field of view.
+void set_limits(ProjectIn& in) {
+  const float fx = in.K[0], fy = in.K[4], cx = in.K[2], cy = in.K[5];
+  in.lim[0] = (in.width - cx) / fx + FOV_MARGIN * 0.5f * in.width / fx;
+  in.lim[1] = cx / fx + FOV_MARGIN * 0.5f * in.width / fx;
+  in.lim[2] = (in.height - cy) / fy + FOV_MARGIN * 0.5f * in.height / fy;
+  in.lim[3] = cy / fy + FOV_MARGIN * 0.5f * in.height / fy;
+}
+
 void project_forward(const ProjectIn& in, const ProjectOut& out, int threads) {
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int i = 0; i < in.n; ++i) {
     Proj s;
     compute(in, i, s);
-    const float u = in.K[0] * s.p[0] / s.zs + in.K[2];
-    const float v = in.K[4] * s.p[1] / s.zs + in.K[5];
-    const float det = s.det > 0.f ? s.det : 1.f;
+    const float u = in.K[0] * s.p[0] * s.inv_z + in.K[2];
+    const float v = in.K[4] * s.p[1] * s.inv_z + in.K[5];
+    const float inv_det = 1.f / (s.det > 0.f ? s.det : 1.f);
     out.means2d[2 * i] = u;
     out.means2d[2 * i + 1] = v;
-    out.conics[3 * i] = s.c / det;
-    out.conics[3 * i + 1] = -s.b / det;
-    out.conics[3 * i + 2] = s.a / det;
+    out.conics[3 * i] = s.c * inv_det;
+    out.conics[3 * i + 1] = -s.b * inv_det;
+    out.conics[3 * i + 2] = s.a * inv_det;
     out.depths[i] = s.p[2];
     out.radii[i] = radius_of(in, s, u, v);
   }
@@ -117,10 +125,10 @@ namespace {
 void conic_vjp(const Proj& s, const float* g, float G[2][2]) {
   float ga, gb, gc;
   if (s.det > 0.f) {
-    const float d2 = s.det * s.det, a = s.a, b = s.b, c = s.c;
-    ga = (-c * c * g[0] + b * c * g[1] - b * b * g[2]) / d2;
-    gb = (2.f * b * c * g[0] - (s.det + 2.f * b * b) * g[1] + 2.f * a * b * g[2]) / d2;
-    gc = (-b * b * g[0] + a * b * g[1] - a * a * g[2]) / d2;
+    const float i2 = 1.f / (s.det * s.det), a = s.a, b = s.b, c = s.c;
+    ga = (-c * c * g[0] + b * c * g[1] - b * b * g[2]) * i2;
+    gb = (2.f * b * c * g[0] - (s.det + 2.f * b * b) * g[1] + 2.f * a * b * g[2]) * i2;
+    gc = (-b * b * g[0] + a * b * g[1] - a * a * g[2]) * i2;
   } else {  // reference divides by 1 there
     ga = g[2], gb = -g[1], gc = g[0];
   }
@@ -130,16 +138,17 @@ void conic_vjp(const Proj& s, const float* g, float G[2][2]) {
 // d loss / d camera point p from the Jacobian and means2d gradients (z only if not culled).
 void point_vjp(const ProjectIn& in, const Proj& s, const float GJ[2][3], const float* gm,
                float gdepth, float gp[3]) {
-  const float fx = in.K[0], fy = in.K[4], z = s.zs, x = s.p[0], y = s.p[1];
+  const float fx = in.K[0], fy = in.K[4], x = s.p[0], y = s.p[1];
+  const float iz = s.inv_z, iz2 = iz * iz, iz3 = iz2 * iz;
   const float dx = s.clamp_x ? 0.f : 1.f, dy = s.clamp_y ? 0.f : 1.f;
-  gp[0] = gm[0] * fx / z - GJ[0][2] * fx * dx / (z * z);
-  gp[1] = gm[1] * fy / z - GJ[1][2] * fy * dy / (z * z);
+  gp[0] = gm[0] * fx * iz - GJ[0][2] * fx * dx * iz2;
+  gp[1] = gm[1] * fy * iz - GJ[1][2] * fy * dy * iz2;
   float gz = 0.f;
   if (s.in_depth) {
-    gz -= gm[0] * fx * x / (z * z) + gm[1] * fy * y / (z * z);
-    gz -= GJ[0][0] * fx / (z * z) + GJ[1][1] * fy / (z * z);
-    gz += GJ[0][2] * (fx * s.cx_ / (z * z) + dx * fx * x / (z * z * z));
-    gz += GJ[1][2] * (fy * s.cy_ / (z * z) + dy * fy * y / (z * z * z));
+    gz -= (gm[0] * fx * x + gm[1] * fy * y) * iz2;
+    gz -= (GJ[0][0] * fx + GJ[1][1] * fy) * iz2;
+    gz += GJ[0][2] * (fx * s.cx_ * iz2 + dx * fx * x * iz3);
+    gz += GJ[1][2] * (fy * s.cy_ * iz2 + dy * fy * y * iz3);
   }
   gp[2] = gz + gdepth;
 }
@@ -157,7 +166,8 @@ void quat_vjp(const Proj& s, const float G[3][3], float* gq) {
              y * G[1][2] + x * G[2][0] + y * G[2][1])};
   const float dot = w * g[0] + x * g[1] + y * g[2] + z * g[3];
   const bool normed = s.qnorm > 1e-12f;
-  for (int k = 0; k < 4; ++k) gq[k] = (normed ? g[k] - s.q[k] * dot : g[k]) / s.qnorm;
+  const float inv_n = 1.f / s.qnorm;
+  for (int k = 0; k < 4; ++k) gq[k] = (normed ? g[k] - s.q[k] * dot : g[k]) * inv_n;
 }
 
 void backward_one(const ProjectIn& in, const ProjectGradIn& g, const ProjectGradOut& out, int i) {

@@ -13,6 +13,7 @@ struct ProjectIn {
   const float* K;        // [3,3] row-major
   int n, width, height;
   float near, far;
+  float lim[4];  // filled by set_limits()
 };
 
 struct ProjectOut {
@@ -34,6 +35,7 @@ struct ProjectGradOut {
   float* scales;  // [N,3]
 };
 
+void set_limits(ProjectIn& in);
 void project_forward(const ProjectIn& in, const ProjectOut& out, int threads);
 void project_backward(const ProjectIn& in, const ProjectGradIn& g, const ProjectGradOut& out,
                       int threads);
