@@ -44,7 +44,8 @@ class TrackingConfig:
     rgbd_new_points: str = "all"  # "all": every unmatched keypoint with depth; "close": < ThDepth
     reloc_candidates: int = 10
     reloc_min_matches: int = 15
-    restart_after_lost: int = 0  # frames lost before a fresh map at the last pose (0: never)
+    restart_after_lost: int = 5  # stereo / RGB-D: frames lost before a new map segment anchored
+    # at the last tracked pose (0: never; monocular never restarts: its scale would be unrelated)
 
 
 @dataclass
@@ -61,6 +62,7 @@ class MappingConfig:
     triangulate_neighbors: int = 10  # covisible keyframes to triangulate with (mono: x2)
     fuse_neighbors: int = 10
     triangulate_ratio: float = 0.8
+    min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
     ba_window: int = 10  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 20  # keyframes held fixed around the window
     ba_iterations: tuple = (5, 10)  # LM iterations before / after removing outliers

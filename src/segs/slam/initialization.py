@@ -75,13 +75,20 @@ class MonoInitializer:
         if sh + sf <= 0:
             return None
         rh = sh / (sh + sf)
-        if rh > self.cfg.homography_ratio:
-            hyps = self._hyps_h(H)
-            inl = mh.ravel().astype(bool)
-        else:
-            hyps = self._hyps_f(F[:3])
-            inl = mf.ravel().astype(bool)
-        return self._select(hyps, x1, x2, sig2, inl)
+        models = []
+        if H is not None:
+            models.append((self._hyps_h, H, mh))
+        if F is not None:
+            models.append((self._hyps_f, F[:3], mf))
+        if rh <= self.cfg.homography_ratio:
+            models.reverse()
+        # ORB-SLAM's choice first; the other model as a fallback (rotation-dominant motion over a
+        # non-planar scene often scores the homography best without it yielding a reconstruction)
+        for hyps, M, mask in models:
+            res = self._select(hyps(M), x1, x2, sig2, mask.ravel().astype(bool))
+            if res is not None:
+                return res
+        return None
 
     def _score_h(self, H, x1, x2, sig2) -> float:
         inv = 1.0 / sig2

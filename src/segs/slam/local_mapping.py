@@ -109,6 +109,7 @@ class LocalMapper:
         ratio_factor = 1.5 * sysm.scale_factor
         P1 = K @ kf.w2c[:3]
         C1 = kf.center
+        partners = []
         for n in kf.covisible(nn):
             kf2 = m.kfs.get(n)
             if kf2 is None:
@@ -118,11 +119,16 @@ class LocalMapper:
                 _, p2 = m.kf_point_ids(kf2)
                 if len(p2) == 0:
                     continue
-                med = np.median(transform(kf2.w2c, m.pos[p2])[:, 2])
-                if baseline / max(med, 1e-9) < 0.01:
+                ratio = baseline / max(float(np.median(transform(kf2.w2c, m.pos[p2])[:, 2])), 1e-9)
+                if ratio < self.cfg.min_baseline_ratio:
                     continue
-            elif baseline < base_stereo:
-                continue
+                partners.append((-ratio, n))
+            elif baseline >= base_stereo:
+                partners.append((0.0, n))
+        # monocular: widest baselines first, so that each keypoint is triangulated with the best
+        # partner (adjacent keyframes have the most shared points but the least parallax)
+        for _, n in sorted(partners, key=lambda t: t[0]) if mono else partners:
+            kf2 = m.kfs[n]
             F = fundamental(kf.w2c, kf2.w2c, K)
             i1, i2 = match_for_triangulation(kf, kf2, F, sysm.sigma2, ratio=self.cfg.triangulate_ratio)
             if len(i1) == 0:

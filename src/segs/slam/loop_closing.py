@@ -275,17 +275,19 @@ class LoopCloser:
             seen.add(key)
             edges.append((i, j, Si @ np.linalg.inv(Sj)))
 
+        # the new loop links first (corrected poses): they must not be shadowed by the same pairs
+        # as covisibility edges with the uncorrected poses
+        for k, links in new_links.items():
+            for n in sorted(links):
+                add(k, n, corrected.get(k, old[k]), corrected.get(n, old[n]))
         for k in sorted(m.kfs):
             f = m.kfs[k]
             if f.parent is not None and f.parent in m.kfs:
                 add(f.parent, k, old[f.parent], old[k])
-            for le in f.loop_edges:
+            for le in sorted(f.loop_edges):
                 if le in m.kfs:
                     add(le, k, old[le], old[k])
-            for n, w in f.conn.items():
+            for n, w in sorted(f.conn.items()):
                 if w >= self.cfg.covis_edges and n in m.kfs:
                     add(n, k, old[n], old[k])
-        for k, links in new_links.items():
-            for n in links:
-                add(k, n, corrected.get(k, old[k]), corrected.get(n, old[n]))
         return edges
