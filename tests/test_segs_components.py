@@ -176,3 +176,27 @@ def test_pruning_removes_low_opacity_anchors_and_keeps_moments():
     assert torch.equal(tags, torch.tensor([0, 1, 3, 4, 5]))
     assert torch.equal(opt.state[field.params["offsets"]]["exp_avg"], kept_state)
     assert (dens.anchor_visits == 0).all()  # statistics window restarted
+
+
+def test_fused_decoders_equal_the_three_mlps():
+    torch.manual_seed(1)
+    field = AnchorField(k=3, feature_dim=8, hidden=8, appearance_dim=4)
+    xyz = torch.rand(12, 3) - 0.5
+    xyz[:, 2] += 3.0
+    field.add(xyz, torch.randn(12, 8), torch.full((12, 6), math.log(0.1)), None)
+    view, emb = View(torch.eye(4), _camera()), torch.randn(4)
+    decoded, info = field.decode(view, emb)
+    rel = field.xyz[info.visible] - view.center
+    x = torch.cat([field.params["features"][info.visible], rel / rel.norm(dim=-1, keepdim=True)], -1)
+    opacity = torch.tanh(field.mlp_opacity(x)).reshape(-1)
+    color = torch.sigmoid(field.mlp_color(torch.cat([x, emb.expand(len(x), 4)], -1))).reshape(-1, 3)
+    cov = field.mlp_cov(x).reshape(-1, 7)
+    keep = opacity > 0
+    assert torch.allclose(decoded.opacities, opacity[keep], atol=1e-6)
+    assert torch.allclose(decoded.colors, color[keep], atol=1e-6)
+    assert torch.allclose(decoded.quats, torch.nn.functional.normalize(cov[keep, 3:7], dim=-1), atol=1e-6)
+    scale = torch.exp(field.params["log_scales"][info.visible]).repeat_interleave(3, 0)
+    assert torch.allclose(decoded.scales, (scale[:, 3:] * torch.sigmoid(cov[:, :3]))[keep], atol=1e-6)
+    means = field.xyz[info.visible].repeat_interleave(3, 0) + field.params["offsets"][info.visible].reshape(-1, 3) * scale[:, :3]
+    assert torch.allclose(decoded.means, means[keep], atol=1e-6)
+    assert torch.equal(info.slots(3), torch.nonzero(keep).squeeze(1) + 0 * info.visible[0])  # all anchors visible here

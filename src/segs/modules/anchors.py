@@ -30,13 +30,17 @@ class DecodeInfo:
     """Where each rendered Gaussian came from (for densification statistics).
 
     visible: [V] long indices of the anchors decoded for this view
-    keep:    [V*k] bool, slots whose opacity > 0 (the rendered Gaussians, in order)
+    keep:    [M] long indices into the V*k slots (anchor-major) of the rendered Gaussians, in order
     opacity: [V,k] raw tanh opacities (detached), for the anchor opacity statistics
     """
 
     visible: torch.Tensor
     keep: torch.Tensor
     opacity: torch.Tensor
+
+    def slots(self, k: int) -> torch.Tensor:
+        """[M] global slot ids (anchor index * k + offset index) of the rendered Gaussians."""
+        return self.visible[self.keep // k] * k + self.keep % k
 
 
 class AnchorField(nn.Module):
@@ -86,7 +90,9 @@ class AnchorField(nn.Module):
     def decode(self, view: View, embedding: torch.Tensor | None, cull: bool = True) -> tuple[Decoded, DecodeInfo]:
         """Decode the Gaussians of the anchors inside the view frustum (all anchors if not cull).
 
-        embedding: [A] appearance embedding or None.
+        embedding: [A] appearance embedding or None. The first layers of the three decoders
+        share their input, so they run as one matrix product; the embedding's contribution to
+        the colour decoder is the same for every anchor and enters as a bias.
         """
         if cull:
             visible = torch.nonzero(frustum_mask(self.xyz, view, self.frustum_margin)).squeeze(1)
@@ -96,20 +102,31 @@ class AnchorField(nn.Module):
         rel = xyz - view.center.to(xyz)
         dist = rel.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         x = torch.cat([self.params["features"][visible], rel / dist] + ([dist] if self.use_distance else []), -1)
-        v, k = xyz.shape[0], self.k
-        opacity = torch.tanh(self.mlp_opacity(x))  # [V,k]
-        keep = (opacity > 0).reshape(-1)
-        xc = x if embedding is None or self.appearance_dim == 0 else torch.cat([x, embedding.to(x).expand(v, -1)], -1)
-        color = torch.sigmoid(self.mlp_color(xc)).reshape(v * k, 3)
-        cov = self.mlp_cov(x).reshape(v * k, 7)
-        scale = torch.exp(self.params["log_scales"][visible]).repeat_interleave(k, 0)  # [V*k,6]
-        offsets = self.params["offsets"][visible].reshape(v * k, 3) * scale[:, :3]
-        means = xyz.repeat_interleave(k, 0) + offsets
+        h_op, h_cov, h_col = self._hidden(x, embedding)
+        k = self.k
+        opacity = torch.tanh(self.mlp_opacity[2](h_op))  # [V,k]
+        keep = torch.nonzero(opacity.detach().reshape(-1) > 0).squeeze(1)  # rendered slots
+        anchor = keep // k
+        cov = self.mlp_cov[2](h_cov).reshape(-1, 7)[keep]
+        color = torch.sigmoid(self.mlp_color[2](h_col).reshape(-1, 3)[keep])
+        scale = torch.exp(self.params["log_scales"][visible])[anchor]  # [M,6]
+        offsets = self.params["offsets"][visible].reshape(-1, 3)[keep]
         decoded = Decoded(
-            means=means[keep],
-            quats=F.normalize(cov[keep, 3:7], dim=-1),
-            scales=(scale[:, 3:] * torch.sigmoid(cov[:, :3]))[keep],
+            means=xyz[anchor] + offsets * scale[:, :3],
+            quats=F.normalize(cov[:, 3:7], dim=-1),
+            scales=scale[:, 3:] * torch.sigmoid(cov[:, :3]),
             opacities=opacity.reshape(-1)[keep],
-            colors=color[keep],
+            colors=color,
         )
         return decoded, DecodeInfo(visible, keep, opacity.detach())
+
+    def _hidden(self, x: torch.Tensor, embedding: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+        """ReLU hidden layers [V,hidden] of the opacity, covariance and colour decoders."""
+        n_in = x.shape[1]
+        first = (self.mlp_opacity[0], self.mlp_cov[0], self.mlp_color[0])
+        weight = torch.cat([first[0].weight, first[1].weight, first[2].weight[:, :n_in]], 0)
+        bias_col = first[2].bias
+        if self.appearance_dim and embedding is not None:
+            bias_col = bias_col + first[2].weight[:, n_in:] @ embedding.to(x)
+        bias = torch.cat([first[0].bias, first[1].bias, bias_col])
+        return torch.relu(torch.addmm(bias, x, weight.T)).split(first[0].out_features, dim=1)

@@ -61,7 +61,7 @@ class AnchorDensifier(nn.Module):
         self.anchor_visits[vis] += 1
         if means2d_grad is None or vis.numel() == 0:
             return
-        slots = (vis.repeat_interleave(self.k) * self.k + torch.arange(self.k, device=vis.device).repeat(vis.numel()))[info.keep]
+        slots = info.slots(self.k)
         drawn = radii > 0
         norm = (means2d_grad[drawn] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)).norm(dim=-1)
         self.grad_accum.view(-1).index_add_(0, slots[drawn], norm)

@@ -1,0 +1,106 @@
+"""Mapping iteration time on the bundled real TUM sample, per model, with a breakdown.
+
+Builds the map of every sample keyframe from known poses (320x240), warms each model up with
+`--warmup` training iterations (densification on, so the Gaussian count is realistic), then
+times `--iters` iterations: decode, rasterize (forward), loss, backward (raster + decoders +
+loss), optimizer step. Prints one table (medians) and writes outputs/bench/train_step.json.
+
+    python bench/train_step.py --warmup 300 --iters 30
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from segs.callbacks.bridge import SlamBridge
+from segs.config import compose, instantiate, make_sequence
+from segs.modules.mapping import MappingModule
+from segs.modules.optim import make_adam, set_learning_rates
+from segs.modules.scene_model import View
+from segs.raster import rasterize
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def build(model: str, steps: int, backend: str):
+    cfg = compose(["+experiment=sample", "slam=known_poses", f"trainer.max_steps={steps}", f"raster.backend={backend}"]
+                  + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []), output_dir="/tmp/segs_bench")  # fmt: skip
+    seq = make_sequence(cfg.data)
+    frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
+    module = MappingModule(instantiate(cfg.model), raster=OmegaConf.to_container(cfg.raster), **cfg.mapping)
+    bridge = SlamBridge(seq, frontend, progress=False)
+    for _ in range(len(seq)):
+        bridge._feed_one()
+        bridge._push(frontend.poll(), module)
+    return module
+
+
+def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
+    t = {}
+    clock = time.perf_counter
+    kf = module.store.sample()
+    view = View(kf.w2c, kf.camera, kf.kf_id)
+    t0 = clock()
+    dec = module.model.decode(view, step)
+    t1 = clock()
+    out = rasterize(dec.means, dec.quats, dec.scales, dec.opacities, dec.colors, view.w2c, view.K, view.camera.width,
+                    view.camera.height, background=torch.zeros(3), backend=module.raster["backend"])  # fmt: skip
+    t2 = clock()
+    terms = module.model.loss(out, kf.rgb(), dec, step)
+    t3 = clock()
+    terms["total"].backward()
+    t4 = clock()
+    module.model.after_backward(dec, out, step)
+    set_learning_rates(opt, module.model.lr_schedules(), step)
+    opt.step()
+    opt.zero_grad(set_to_none=True)
+    module.model.maintain(step + 1, opt)
+    t5 = clock()
+    if timed:
+        t = {"decode": t1 - t0, "raster_fwd": t2 - t1, "loss": t3 - t2, "backward": t4 - t3, "step+stats": t5 - t4, "total": t5 - t0,
+             "gaussians": len(dec)}  # fmt: skip
+    return t
+
+
+def bench(model: str, warmup: int, iters: int, backend: str) -> dict:
+    torch.manual_seed(0)
+    module = build(model, warmup + iters, backend)
+    opt = make_adam(module.model.param_groups())
+    for s in range(warmup):
+        iteration(module, opt, s, False)
+    rows = [iteration(module, opt, warmup + i, True) for i in range(iters)]
+    med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    med["anchors"] = int(module.model.counts()["anchors"])
+    return med
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--warmup", type=int, default=300)
+    p.add_argument("--iters", type=int, default=30)
+    p.add_argument("--backend", default="cpu")
+    p.add_argument("--models", nargs="+", default=["segs", "plain_3dgs"])
+    args = p.parse_args()
+    results = {m: bench(m, args.warmup, args.iters, args.backend) for m in args.models}
+    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    print(f"{cpu}, {torch.get_num_threads()} threads, backend {args.backend}, 320x240, medians of {args.iters} iterations after {args.warmup}")
+    keys = ["decode", "raster_fwd", "loss", "backward", "step+stats", "total"]
+    print(f"| model | Gaussians drawn | anchors | {' | '.join(k + ' ms' for k in keys)} | it/s |")
+    print("|---|---|---|" + "---|" * (len(keys) + 1))
+    for m, r in results.items():
+        cells = " | ".join(f"{1000 * r[k]:.1f}" for k in keys)
+        print(f"| {m} | {r['gaussians']:.0f} | {r['anchors']} | {cells} | {1 / r['total']:.2f} |")
+    out = ROOT / "outputs" / "bench"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "train_step.json").write_text(json.dumps({"cpu": cpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
