@@ -44,7 +44,7 @@ class TrackingConfig:
     rgbd_new_points: str = "all"  # "all": every unmatched keypoint with depth; "close": < ThDepth
     reloc_candidates: int = 10
     reloc_min_matches: int = 15
-    restart_after_lost: int = 5  # stereo / RGB-D: frames lost before a new map segment anchored
+    restart_after_lost: int = 10  # stereo / RGB-D: frames lost before a new map segment anchored
     # at the last tracked pose (0: never; monocular never restarts: its scale would be unrelated)
 
 

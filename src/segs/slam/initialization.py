@@ -69,7 +69,13 @@ class MonoInitializer:
         """Pixel matches x1, x2 [N,2] -> (w2c of view 2, points [N,3], good mask [N]) or None."""
         cv2.setRNGSeed(self.seed)
         H, mh = cv2.findHomography(x1, x2, cv2.RANSAC, 2.0 * np.sqrt(TH_H), maxIters=500, confidence=0.999)
-        F, mf = cv2.findFundamentalMat(x1, x2, cv2.FM_RANSAC, 2.0 * np.sqrt(TH_F), 0.999, 500)
+        # calibrated camera: the essential matrix by the 5-point algorithm (far more accurate than
+        # an 8-point fundamental matrix); its F = K^-T E K^-1 enters ORB-SLAM's model score
+        E, mf = cv2.findEssentialMat(x1, x2, self.K, cv2.RANSAC, 0.999, np.sqrt(TH_F))
+        if E is not None and E.shape[0] > 3:
+            E = E[:3]
+        Ki = np.linalg.inv(self.K)
+        F = Ki.T @ E @ Ki if E is not None else None
         sh = self._score_h(H, x1, x2, sig2) if H is not None else 0.0
         sf = self._score_f(F[:3] if F is not None else None, x1, x2, sig2) if F is not None else 0.0
         if sh + sf <= 0:
@@ -120,7 +126,7 @@ class MonoInitializer:
         return [(Rs[i], ts[i].ravel()) for i in range(n)]
 
     def _hyps_f(self, F) -> list[tuple[np.ndarray, np.ndarray]]:
-        E = self.K.T @ F @ self.K
+        E = self.K.T @ F @ self.K  # back to the essential matrix
         R1, R2, t = cv2.decomposeEssentialMat(E)
         t = t.ravel()
         return [(R1, t), (R1, -t), (R2, t), (R2, -t)]

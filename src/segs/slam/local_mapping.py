@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
+from segs.slam.geometry import fundamental, inv_se3, project, transform, triangulate
 from segs.slam.map import KeyFrame
 from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
 from segs.slam.features import hamming_pairs
@@ -29,6 +29,12 @@ class LocalMapper:
         self.cfg = system.cfg.mapping
         self.recent: list[int] = []
         self.ba_times: list[float] = []
+
+    def __getstate__(self) -> dict:
+        """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
+        state = dict(self.__dict__)
+        state.pop("sys", None)
+        return state
 
     def add_recent(self, pids: np.ndarray) -> None:
         self.recent.extend(int(p) for p in pids)
@@ -209,7 +215,7 @@ class LocalMapper:
         S: optional similarity w2c [4,4] used for the projection instead of kf.w2c (loop fusion).
         Returns the number of fused / added observations.
         """
-        m, sysm = self.sys.map, self.sys
+        m = self.sys.map
         pids = pids[m.valid[pids]]
         pids = np.array([p for p in pids.tolist() if kf.kf_id not in m.obs[p]], np.int64)
         if len(pids) == 0:
@@ -342,7 +348,7 @@ class LocalMapper:
             ks.append(np.full(int(sel.sum()), k))
             ps.append(pids[sel])
             ids.append(idx[sel])
-        kk, pp, ii = np.concatenate(ks), np.concatenate(ps), np.concatenate(ids)
+        kk, pp = np.concatenate(ks), np.concatenate(ps)
         ur = np.concatenate([m.kfs[k].ur[i] for k, i in zip(kfs, ids)]) if not mono else np.full(len(kk), -1.0)
         uv = np.concatenate([m.kfs[k].kp.uv[i] for k, i in zip(kfs, ids)])
         octv = np.concatenate([m.kfs[k].kp.octave[i] for k, i in zip(kfs, ids)])

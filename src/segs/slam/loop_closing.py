@@ -47,6 +47,12 @@ class LoopCloser:
         self.last_loop_kf = -(10 ** 9)
         self.loops: list[tuple[int, int]] = []  # (current kf, loop kf)
 
+    def __getstate__(self) -> dict:
+        """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
+        state = dict(self.__dict__)
+        state.pop("sys", None)
+        return state
+
     def process(self, kf: KeyFrame) -> bool:
         """Try to close a loop at keyframe kf; True when a loop was corrected."""
         if not self.cfg.enabled:

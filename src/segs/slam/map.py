@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from segs.slam.features import Keypoints, hamming_matrix
+from segs.slam.features import Keypoints
 from segs.slam.frame import KeypointGrid, SlamFrame
 from segs.slam.geometry import cam_center, inv_se3
 
@@ -31,7 +31,8 @@ class KeyFrame:
         self.colors = frame.colors
         self.grid: KeypointGrid = frame.grid
         self.points = np.where(frame.outlier, -1, frame.points).astype(np.int64)
-        self.w2c = np.array(w2c, np.float64)
+        self._w2c = np.array(w2c, np.float64)
+        self._center = cam_center(self._w2c)
         self.conn: dict[int, int] = {}
         self.ordered: list[int] = []
         self.parent: int | None = None
@@ -43,8 +44,18 @@ class KeyFrame:
         self.protected = False  # loop closing in progress: no culling
 
     @property
+    def w2c(self) -> np.ndarray:
+        """World-to-camera [4,4]; assign a new matrix to move the keyframe (the centre is cached)."""
+        return self._w2c
+
+    @w2c.setter
+    def w2c(self, value: np.ndarray) -> None:
+        self._w2c = np.array(value, np.float64)
+        self._center = cam_center(self._w2c)
+
+    @property
     def center(self) -> np.ndarray:
-        return cam_center(self.w2c)
+        return self._center
 
     def __len__(self) -> int:
         return len(self.kp)
@@ -192,43 +203,64 @@ class Map:
     # ----------------------------------------------------------------- point statistics
     def update_geometry(self, pids: np.ndarray) -> None:
         """Viewing normal (mean direction from the observing cameras) and scale-invariance range."""
-        last = self.scales[-1]
-        for pid in np.asarray(pids, np.int64):
-            o = self.obs[pid]
-            if not o:
-                continue
-            p = self.pos[pid]
-            dirs = []
-            for kf_id in o:
-                kf = self.kfs.get(kf_id)
-                if kf is not None:
-                    v = p - kf.center
-                    dirs.append(v / max(np.linalg.norm(v), 1e-12))
-            if dirs:
-                n = np.sum(dirs, 0)
-                self.normal[pid] = n / max(np.linalg.norm(n), 1e-12)
-            ref = self.kfs.get(int(self.ref_kf[pid]))
-            if ref is None:
-                continue
-            idx = o.get(ref.kf_id)
+        pids = np.asarray(pids, np.int64)
+        if len(pids) == 0:
+            return
+        owner, kfid = [], []
+        for j, pid in enumerate(pids.tolist()):
+            for k in self.obs[pid]:
+                if k in self.kfs:
+                    owner.append(j)
+                    kfid.append(k)
+        if not owner:
+            return
+        owner = np.asarray(owner, np.int64)
+        kfid = np.asarray(kfid, np.int64)
+        ids, inv = np.unique(kfid, return_inverse=True)
+        centers = np.stack([self.kfs[int(k)].center for k in ids])
+        v = self.pos[pids][owner] - centers[inv]
+        v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+        n = np.zeros((len(pids), 3))
+        np.add.at(n, owner, v)
+        norm = np.linalg.norm(n, axis=1)
+        has = norm > 0
+        self.normal[pids[has]] = n[has] / norm[has, None]
+        # scale range from the reference keyframe's observation
+        refs = self.ref_kf[pids]
+        for j, (pid, r) in enumerate(zip(pids.tolist(), refs.tolist())):
+            ref = self.kfs.get(r)
+            idx = self.obs[pid].get(r) if ref is not None else None
             if idx is None:
+                refs[j] = -1
                 continue
-            dist = np.linalg.norm(p - ref.center)
-            self.dmax[pid] = dist * self.scales[ref.kp.octave[idx]]
-            self.dmin[pid] = self.dmax[pid] / last
+            refs[j] = ref.kp.octave[idx]
+        ok = refs >= 0
+        if ok.any():
+            sel = pids[ok]
+            cref = np.stack([self.kfs[int(r)].center for r in self.ref_kf[sel]])
+            dist = np.linalg.norm(self.pos[sel] - cref, axis=1)
+            self.dmax[sel] = dist * self.scales[refs[ok]]
+            self.dmin[sel] = self.dmax[sel] / self.scales[-1]
 
     def update_descriptors(self, pids: np.ndarray) -> None:
-        """Distinctive descriptor: the observation's descriptor with the least median distance."""
-        for pid in np.asarray(pids, np.int64):
-            o = self.obs[pid]
-            if len(o) < 2:
-                continue
-            ds = [self.kfs[k].kp.desc[i] for k, i in o.items() if k in self.kfs]
+        """Distinctive descriptor: the observation's descriptor with the least median distance.
+
+        Vectorized per group of points with the same number of observations.
+        """
+        groups: dict[int, tuple[list, list]] = {}
+        for pid in np.asarray(pids, np.int64).tolist():
+            ds = [(k, i) for k, i in self.obs[pid].items() if k in self.kfs]
             if len(ds) < 2:
                 continue
-            d = np.stack(ds)
-            dm = hamming_matrix(d, d)
-            self.desc[pid] = d[np.argmin(np.median(dm, 1))]
+            g = groups.setdefault(len(ds), ([], []))
+            g[0].append(pid)
+            g[1].append(np.stack([self.kfs[k].kp.desc[i] for k, i in ds]))
+        for n, (gp, gd) in groups.items():
+            d = np.stack(gd)  # [P,n,32]
+            d64 = d.view(np.uint64)  # [P,n,4]
+            dm = np.bitwise_count(d64[:, :, None, :] ^ d64[:, None, :, :]).sum(-1)  # [P,n,n]
+            best = np.argmin(np.median(dm, axis=2), axis=1)
+            self.desc[np.asarray(gp)] = d[np.arange(len(gp)), best]
 
     def predict_level(self, pids: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """Predicted pyramid level [M] for points pids viewed from distance dist [M]."""

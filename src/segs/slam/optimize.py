@@ -13,7 +13,7 @@ import cv2
 import gtsam
 import numpy as np
 
-from segs.slam.geometry import inv_se3, orthonormalize, rt_to_w2c, transform, w2c_to_rt
+from segs.slam.geometry import inv_se3, orthonormalize, rt_to_w2c, transform
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
@@ -60,37 +60,45 @@ def _so3_left_jacobian(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * W + (th - np.sin(th)) / th ** 3 * (W @ W)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of [N,3] arrays (faster than np.cross for small N)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _pose_residuals(x, w2c0, P, uv, ur, w, K, bf, stereo, w_ur):
-    """Whitened reprojection residuals [M*2 (+ stereo count)] and Jacobian wrt a left increment."""
+    """Whitened reprojection residuals [2M (+ stereo count)] and Jacobian wrt a left increment x [6]."""
     T = _se3_exp(x) @ w2c0
     pc = P @ T[:3, :3].T + T[:3, 3]
-    z = np.where(pc[:, 2] < 1e-6, 1e-6, pc[:, 2])
+    rq = pc - x[3:]  # exp(omega) applied to the points in the start camera frame (before + v)
+    z = np.maximum(pc[:, 2], 1e-6)
     iz = 1.0 / z
     fx, fy = K[0, 0], K[1, 1]
-    u = fx * pc[:, 0] * iz + K[0, 2]
-    v = fy * pc[:, 1] * iz + K[1, 2]
-    ru, rv = (u - uv[:, 0]) * w, (v - uv[:, 1]) * w
-    # d pc / d (omega, t) = [-[pc]x, I]
-    X, Y = pc[:, 0], pc[:, 1]
-    du = np.stack([fx * iz, np.zeros_like(iz), -fx * X * iz * iz], 1)
-    dv = np.stack([np.zeros_like(iz), fy * iz, -fy * Y * iz * iz], 1)
-
+    X, Y = pc[:, 0] * iz, pc[:, 1] * iz
+    ru = (fx * X + K[0, 2] - uv[:, 0]) * w
+    rv = (fy * Y + K[1, 2] - uv[:, 1]) * w
     Jl = _so3_left_jacobian(x[:3])
-    rq = pc - x[3:]  # rotated point before the translation increment
-
-    def jac(d):
-        # d pc / d omega = -[pc]x Jl(omega): row d^T (-[pc]x) = (pc x d)^T
-        return np.concatenate([np.cross(rq, d) @ Jl, d], 1)
-
-    res = [ru, rv]
-    J = [jac(du) * w[:, None], jac(dv) * w[:, None]]
+    n = len(P)
+    # d u / d pc = fx/z [1, 0, -X];  d v / d pc = fy/z [0, 1, -Y];  d pc / d (omega, t) = [-[rq]x Jl, I]
+    du = np.zeros((n, 3))
+    du[:, 0] = fx * iz
+    du[:, 2] = -fx * X * iz
+    dv = np.zeros((n, 3))
+    dv[:, 1] = fy * iz
+    dv[:, 2] = -fy * Y * iz
+    Ju = np.hstack([_cross(rq, du) @ Jl, du]) * w[:, None]
+    Jv = np.hstack([_cross(rq, dv) @ Jl, dv]) * w[:, None]
+    res, J = [ru, rv], [Ju, Jv]
     if stereo is not None and stereo.any():
         s = stereo
         ws = w_ur[s]
-        rr = (bf * iz[s] - (uv[s, 0] - ur[s])) * ws
-        dr = np.stack([np.zeros(s.sum()), np.zeros(s.sum()), -bf * iz[s] * iz[s]], 1)
-        res.append(rr)
-        J.append(np.concatenate([np.cross(rq[s], dr) @ Jl, dr], 1) * ws[:, None])
+        res.append((bf * iz[s] - (uv[s, 0] - ur[s])) * ws)
+        dr = np.zeros((int(s.sum()), 3))
+        dr[:, 2] = -bf * iz[s] * iz[s]
+        J.append(np.hstack([_cross(rq[s], dr) @ Jl, dr]) * ws[:, None])
     return np.concatenate(res), np.concatenate(J)
 
 

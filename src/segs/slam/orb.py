@@ -18,6 +18,7 @@ import pickle
 import queue
 import threading
 import time
+from types import SimpleNamespace
 from typing import Any, Mapping
 
 import numpy as np
@@ -58,10 +59,7 @@ class OrbFrontend(Frontend):
         if sensor == "stereo" and not camera.baseline:
             raise ConfigError("slam: stereo needs camera.baseline (metres) of the rectified pair")
 
-        class _Cfg:
-            pass
-
-        self.cfg = _Cfg()
+        self.cfg = SimpleNamespace()
         for name, group in (("features", features), ("tracking", tracking), ("init", init),
                             ("mapping", mapping), ("loop", loop)):
             setattr(self.cfg, name, C.build(C.GROUPS[name], group, name))

@@ -46,6 +46,12 @@ class Tracker:
         self.mono_init = MonoInitializer(system.cfg.init, system.K, system.sigma2, system.seed) \
             if system.sensor == "mono" else None
 
+    def __getstate__(self) -> dict:
+        """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
+        state = dict(self.__dict__)
+        state.pop("sys", None)
+        return state
+
     # ------------------------------------------------------------------ entry point
     def track(self, frame: SlamFrame) -> KeyFrame | None:
         """Sets frame.w2c (None when lost); returns a new keyframe if one was created."""
@@ -139,7 +145,9 @@ class Tracker:
             self.sys.reset_map()
             return None
         s = 1.0 / float(np.median(depth))
-        kf1.w2c[:3, 3] *= s
+        T1 = kf1.w2c.copy()
+        T1[:3, 3] *= s
+        kf1.w2c = T1
         m.pos[p0] *= s
         frame.w2c = kf1.w2c.copy()
         frame.points = kf1.points.copy()

@@ -1,0 +1,131 @@
+"""`python -m segs.track [+experiment=NAME] [key=value ...]`: tracking only, no Gaussians.
+
+Same configs as `segs.train`: the sequence (`data`) is fed frame by frame to the frontend
+(`slam`), then the run folder receives
+
+- trajectory.txt: the estimated camera-to-world poses of the tracked frames (TUM format),
+- keyframes.txt: `kf_id frame_index timestamp` of the keyframes still in the map,
+- tracking.json: ATE RMSE (evo; SE(3) for RGB-D / stereo, Sim(3) for monocular, from
+  `camera.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics.
+
+Run folder: outputs/track/runs/<time> (task_name=track unless given).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import hydra
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from segs.config import user_errors_exit, validate
+from segs.errors import ConfigError, DataError
+from segs.slam.runner import run_sequence
+from segs.trajectory import ate, estimated_c2w, write_tum
+
+log = logging.getLogger("segs.track")
+
+
+def lost_ranges(lost: list[int]) -> list[list[int]]:
+    """[3, 4, 5, 9] -> [[3, 5], [9, 9]] (inclusive ranges)."""
+    out: list[list[int]] = []
+    for i in lost:
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
+
+
+def run(cfg: DictConfig, progress: bool = True) -> dict:
+    """Track the configured sequence; writes the result files and returns tracking.json's dict."""
+    validate(cfg)
+    out = Path(cfg.paths.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sequence = instantiate(cfg.data)
+    if len(sequence) == 0:
+        raise DataError(f"data: the sequence at {cfg.data.get('root', '?')} has no frames")
+    frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
+    align = OmegaConf.select(cfg, "camera.ate_align", default=None) or ("sim3" if sequence.sensor == "mono" else "se3")
+    if align not in ("se3", "sim3", "none"):
+        raise ConfigError(f"camera.ate_align={align!r} is not one of se3, sim3, none")
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(sequence), desc="tracking", leave=False, disable=not sys.stderr.isatty())
+    t0 = time.perf_counter()
+    result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None)
+    wall = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+
+    traj = frontend.trajectory()
+    idx, c2w = estimated_c2w(traj)
+    write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
+    kfs = frontend.keyframe_frames()
+    with open(out / "keyframes.txt", "w") as f:
+        f.write("# kf_id frame_index timestamp\n")
+        for k, i in sorted(kfs.items()):
+            f.write(f"{k} {i} {sequence.timestamps[i]:.6f}\n")
+    lost = frontend.lost_frames()
+    ate_result = ate(sequence.timestamps, traj, sequence.gt_poses, align=align)
+    stats = frontend.stats() if hasattr(frontend, "stats") else {}
+    n = len(sequence)
+    metrics = {
+        "sequence": getattr(sequence, "name", ""),
+        "sensor": sequence.sensor,
+        "frames": n,
+        "frames_tracked": len(traj),
+        "tracked_fraction": len(traj) / n,
+        "lost_frames": len(lost),
+        "lost_ranges": lost_ranges(lost),
+        "keyframes": len(kfs),
+        "ate_rmse_m": ate_result["rmse"],
+        "ate": ate_result,
+        # process(): tracking and, single-threaded, local mapping and loop closing
+        "tracking_fps": n / result.process_s if result.process_s > 0 else None,
+        "process_s": result.process_s,
+        "finish_s": result.finish_s,
+        "wall_s": wall,
+        "frontend": stats,
+        "points": int(len(result.update.points)),
+    }
+    _write_json(out / "tracking.json", metrics)
+    rmse = ate_result["rmse"]
+    print(
+        f"\nsegs.track: results in {out}\n"
+        f"  {len(traj)}/{n} frames tracked ({100 * len(traj) / n:.1f} %), {len(kfs)} keyframes, "
+        f"{len(result.update.points)} map points\n"
+        f"  ATE RMSE ({align}) {'n/a' if rmse is None else f'{rmse * 100:.2f} cm'}"
+        f" over {ate_result['pairs']} frames\n"
+        f"  {metrics['tracking_fps']:.1f} frames/s in process() ({result.process_s:.1f} s), "
+        f"finish {result.finish_s:.1f} s\n"
+        f"  trajectory.txt (TUM), keyframes.txt, tracking.json"
+    )
+    return metrics
+
+
+@hydra.main(config_path="../../conf", config_name="train", version_base="1.3")
+def main(cfg: DictConfig) -> float | None:
+    with user_errors_exit():
+        metrics = run(cfg)
+    return metrics.get("ate_rmse_m")
+
+
+if __name__ == "__main__":
+    if not any(a.startswith(("task_name=", "+task_name=", "++task_name=")) for a in sys.argv[1:]):
+        sys.argv.append("task_name=track")
+    main()

@@ -1,0 +1,190 @@
+"""Components of the ORB frontend: features, matching grid, optimisation, vocabulary, config, modes."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from segs.data.synthetic import SyntheticSequence
+from segs.errors import ConfigError
+from segs.slam import config as C
+from segs.slam.features import OrbExtractor, hamming, hamming_matrix, to_gray
+from segs.slam.frame import KeypointGrid
+from segs.slam.geometry import inv_se3, umeyama
+from segs.slam.initialization import MonoInitializer
+from segs.slam.optimize import BundleAdjuster, Observations, _sim3, _sim3_matrix, pose_graph, refine_pose
+from segs.slam.orb import OrbFrontend
+from segs.slam.runner import run_sequence
+from segs.slam.vocabulary import Vocabulary, bow_score
+
+ROOT = Path(__file__).resolve().parents[1]
+K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+
+
+def _rot(rv):
+    return cv2.Rodrigues(np.asarray(rv, np.float64).reshape(3, 1))[0]
+
+
+def _pose(rv, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = _rot(rv), t
+    return T
+
+
+def _project(T, P):
+    pc = P @ T[:3, :3].T + T[:3, 3]
+    return np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], 1), pc[:, 2]
+
+
+@pytest.fixture(scope="module")
+def image():
+    seq = SyntheticSequence(sensor="mono", n_frames=4, width=320, height=240, seed=0)
+    return to_gray(seq[0].rgb), to_gray(seq[1].rgb)
+
+
+def test_orb_extractor_counts_and_spreads_keypoints(image):
+    ex = OrbExtractor(500, 1.2, 8, 20, 7, cell_size=30)
+    kp = ex.extract(image[0])
+    assert 0 < len(kp) <= 500
+    assert kp.desc.shape == (len(kp), 32) and kp.desc.dtype == np.uint8
+    assert kp.octave.min() >= 0 and kp.octave.max() < 8
+    plain = cv2.ORB_create(500, 1.2, 8).detect(image[0], None)
+
+    def coverage(uv):  # occupied 40x40 cells of the image
+        return len({(int(u // 40), int(v // 40)) for u, v in uv})
+
+    assert coverage(kp.uv) >= coverage([k.pt for k in plain])
+
+
+def test_hamming_matches_opencv(image):
+    kp = OrbExtractor(200, 1.2, 8, 20, 7).extract(image[0])
+    d = kp.desc
+    ref = np.array([[cv2.norm(a, b, cv2.NORM_HAMMING) for b in d[:20]] for a in d[:30]])
+    assert np.array_equal(hamming_matrix(d[:30], d[:20]), ref)
+    assert np.array_equal(hamming(d[:20], d[:20][::-1]), np.diag(ref[:20, :20][:, ::-1]))
+
+
+def test_keypoint_grid_query_equals_brute_force():
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [320, 240], (400, 2))
+    q = rng.uniform([-10, -10], [330, 250], (50, 2))
+    r = rng.uniform(1, 40, 50)
+    qi, ki = KeypointGrid(uv, 320, 240, cell=16).query(q, r)
+    got = set(zip(qi.tolist(), ki.tolist()))
+    d = np.linalg.norm(q[:, None] - uv[None], axis=2)
+    want = set(zip(*np.nonzero(d <= r[:, None])))
+    assert got == want
+
+
+def test_refine_pose_is_robust_to_outliers():
+    rng = np.random.default_rng(1)
+    P = rng.uniform([-2, -1.5, 2], [2, 1.5, 6], (300, 3))
+    gt = _pose([0.05, -0.1, 0.02], [0.1, -0.05, 0.2])
+    uv, _ = _project(gt, P)
+    uv += rng.normal(0, 0.5, uv.shape)
+    bad = rng.choice(300, 60, replace=False)
+    uv[bad] += rng.uniform(-40, 40, (60, 2))
+    start = _pose([0.06, -0.08, 0.0], [0.13, -0.03, 0.16])
+    w2c, inl = refine_pose(start, P, uv, None, np.ones(300), K, 0.0)
+    assert np.abs(inv_se3(w2c)[:3, 3] - inv_se3(gt)[:3, 3]).max() < 0.01
+    assert inl[bad].mean() < 0.1 and inl[np.setdiff1d(np.arange(300), bad)].mean() > 0.95
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_bundle_adjustment_recovers_poses_and_points(stereo):
+    rng = np.random.default_rng(2)
+    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (200, 3))
+    poses = {k: _pose([0, 0.02 * k, 0], [-0.2 * k, 0, 0]) for k in range(4)}
+    bf = 300 * 0.1
+    kf, pid, uvs, urs = [], [], [], []
+    for k, T in poses.items():
+        uv, z = _project(T, P)
+        kf += [k] * len(P)
+        pid += list(range(len(P)))
+        uvs.append(uv + rng.normal(0, 0.3, uv.shape))
+        urs.append(uv[:, 0] - bf / z if stereo else np.full(len(P), -1.0))
+    obs = Observations(np.array(kf), np.array(pid), np.concatenate(uvs), np.concatenate(urs), np.zeros(len(kf), np.int64))
+    noisy = {k: T @ _pose(rng.normal(0, 0.01, 3), rng.normal(0, 0.03, 3)) if k > 1 else T for k, T in poses.items()}
+    pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(len(P))}
+    ba = BundleAdjuster(K, bf, 1.2 ** np.arange(8))
+    new_poses, new_points = ba.run(noisy, {0, 1}, pts, obs, 20)
+    for k in poses:
+        assert np.abs(inv_se3(new_poses[k])[:3, 3] - inv_se3(poses[k])[:3, 3]).max() < 0.01
+    err = np.array([np.linalg.norm(new_points[i] - P[i]) for i in range(len(P))])
+    err0 = np.array([np.linalg.norm(pts[i] - P[i]) for i in range(len(P))])
+    assert np.median(err) < 0.5 * np.median(err0)
+
+
+def test_pose_graph_spreads_loop_error_and_sim3_conversion():
+    chain = {k: _pose([0, 0, 0], [-float(k), 0, 0]) for k in range(5)}
+    init = dict(chain)
+    init[4] = _pose([0, 0, 0], [-3.5, 0, 0])
+    edges = [(k, k + 1, chain[k] @ inv_se3(chain[k + 1])) for k in range(4)]
+    edges.append((0, 4, init[0] @ inv_se3(init[4])))
+    out = pose_graph(init, edges, {0}, sim3=False)
+    x = [-out[k][0, 3] for k in range(5)]
+    assert np.all(np.diff(x) > 0) and 3.4 < x[4] < 3.9 and 0.8 < x[1] < 1.0
+    S = _pose([0.1, 0.2, 0.3], [1, 2, 3])
+    S[:3, :3] *= 1.7
+    assert np.allclose(_sim3_matrix(_sim3(S)), S)
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(20, 3))
+    assert np.allclose(umeyama(src, src @ S[:3, :3].T + S[:3, 3], True), S)
+
+
+def test_mono_two_view_reconstruction():
+    rng = np.random.default_rng(4)
+    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (300, 3))
+    T2 = _pose([0.0, -0.05, 0.0], [-0.3, 0.02, 0.0])
+    x1, _ = _project(np.eye(4), P)
+    x2, _ = _project(T2, P)
+    init = MonoInitializer(C.InitConfig(), K, 1.2 ** (2 * np.arange(8)))
+    res = init.reconstruct(x1 + rng.normal(0, 0.3, x1.shape), x2 + rng.normal(0, 0.3, x2.shape), np.ones(300))
+    assert res is not None
+    w2c, X, good = res
+    assert good.sum() > 250
+    assert np.allclose(w2c[:3, :3], T2[:3, :3], atol=1e-2)  # refined by the global BA that follows
+    t = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
+    assert np.dot(w2c[:3, 3], t) > 0.99  # unit-norm translation, arbitrary scale
+
+
+def test_vocabulary_scores_same_place_higher(image):
+    voc = Vocabulary.load()
+    assert voc.n_words == 4096
+    ex = OrbExtractor(1000, 1.2, 8, 20, 7)
+    a, b = ex.extract(image[0]), ex.extract(image[1])
+    other = ex.extract(cv2.imread(str(ROOT / "datasets/tum_fr3_cabinet_kf/rgb/0000_rgb_raw.jpg"), cv2.IMREAD_GRAYSCALE))
+    wa = voc.words(a.desc)
+    assert np.array_equal(wa, voc.words(a.desc)) and wa.max() < 4096
+    ba, bb, bo = voc.bow(wa), voc.bow(voc.words(b.desc)), voc.bow(voc.words(other.desc))
+    assert bow_score(ba, ba) == pytest.approx(1.0)
+    assert bow_score(ba, bb) > bow_score(ba, bo)
+
+
+def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
+    cam = SyntheticSequence(sensor="rgbd", n_frames=2, width=64, height=48).camera
+    with pytest.raises(ConfigError):
+        OrbFrontend(cam, "rgbd", tracking={"no_such_key": 1})
+    with pytest.raises(ConfigError):
+        OrbFrontend(cam, "fisheye")
+    conf = yaml.safe_load((ROOT / "conf/slam/orb.yaml").read_text())
+    assert conf["_target_"] == "segs.slam.orb.OrbFrontend"
+    for group, cls in C.GROUPS.items():
+        default = C.build(cls, None, group)
+        from_yaml = C.build(cls, conf[group], group)
+        assert default == from_yaml, f"conf/slam/orb.yaml {group} differs from segs.slam.config defaults"
+
+
+def test_threaded_mode_and_checkpoint_round_trip():
+    seq = SyntheticSequence(sensor="rgbd", n_frames=24, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
+    fe = OrbFrontend(seq.camera, "rgbd", threaded=True)
+    run_sequence(fe, seq, frames=range(12))
+    state = fe.state_dict()  # stops the mapping thread
+    single = OrbFrontend(seq.camera, "rgbd")
+    single.load_state_dict(state)
+    run = run_sequence(single, seq, frames=range(12, 24))
+    assert single.lost_frames() == [] and sorted(single.trajectory()) == list(range(24))
+    assert all(r.tracked for r in run.results)
