@@ -200,3 +200,25 @@ def test_fused_decoders_equal_the_three_mlps():
     means = field.xyz[info.visible].repeat_interleave(3, 0) + field.params["offsets"][info.visible].reshape(-1, 3) * scale[:, :3]
     assert torch.allclose(decoded.means, means[keep], atol=1e-6)
     assert torch.equal(info.slots(3), torch.nonzero(keep).squeeze(1) + 0 * info.visible[0])  # all anchors visible here
+
+
+def test_segs_model_sepm_batches_and_loop_correction():
+    from segs.modules.segs_model import SegsModel
+
+    model = SegsModel(k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3)
+    pts = torch.tensor([[0.0, 0, 2], [0.01, 0, 2], [1.0, 0, 2]])
+    assert model.add_points(pts, torch.rand(3, 3), torch.tensor([0, 0, 0]), None) == 2  # two voxels
+    assert model.add_points(pts[:1] + 1.0, torch.rand(1, 3), torch.tensor([1]), None) == 0  # waits for 3 points
+    added = model.add_points(torch.tensor([[2.0, 0, 2], [3.0, 0, 2]]), torch.rand(2, 3), torch.tensor([1, 1]), None)
+    assert added == 3 and len(model.field) == 5
+    assert torch.equal(model.kf_tags, torch.tensor([0, 0, 1, 1, 1]))
+    assert model.add_points(pts, torch.rand(3, 3), torch.tensor([2, 2, 2]), None) == 0  # voxels already held
+    T = torch.eye(4)
+    T[:3, :3] = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]) * 2.0  # rotation and scale 2
+    before = model.field.xyz.clone()
+    scales_before = torch.exp(model.field.params["log_scales"].detach().clone())
+    assert model.correct_map({1: T}, None) == 3
+    assert torch.equal(model.field.xyz[:2], before[:2])
+    assert torch.allclose(model.field.xyz[2:], before[2:] @ T[:3, :3].T)
+    scales = torch.exp(model.field.params["log_scales"].detach())
+    assert torch.allclose(scales[2:], 2 * scales_before[2:]) and torch.equal(scales[:2], scales_before[:2])

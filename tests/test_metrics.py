@@ -1,0 +1,86 @@
+"""Metric functions against hand-computed values; LPIPS only from a real weights file."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from segs.errors import ConfigError
+from segs.modules.metrics import Lpips, alexnet_features, make_lpips, psnr, ssim
+from segs.trajectory import ate
+
+
+def test_psnr_is_the_mean_of_per_channel_psnr():
+    gt = torch.zeros(4, 4, 3)
+    render = gt.clone()
+    render[..., 0] = 0.1  # MSE 0.01 -> 20 dB
+    render[..., 1] = 0.01  # MSE 1e-4 -> 40 dB
+    render[..., 2] = 0.001  # MSE 1e-6 -> 60 dB
+    assert psnr(render, gt) == pytest.approx((20 + 40 + 60) / 3, rel=1e-5)
+
+
+def test_ssim_identity_and_constant_images():
+    img = torch.rand(32, 32, 3)
+    assert ssim(img, img) == pytest.approx(1.0, abs=1e-6)
+    # two constant images a, b: SSIM = (2ab + C1) / (a^2 + b^2 + C1) everywhere
+    a, b, c1 = 0.2, 0.6, 0.01**2
+    got = ssim(torch.full((32, 32, 3), a), torch.full((32, 32, 3), b))
+    assert got == pytest.approx((2 * a * b + c1) / (a * a + b * b + c1), rel=1e-4)
+
+
+def test_lpips_is_unavailable_without_weights():
+    assert make_lpips(None) is None
+
+
+def test_lpips_rejects_a_missing_or_foreign_weights_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        make_lpips(str(tmp_path / "missing.pth"))
+    torch.save({"features.0.weight": torch.zeros(3)}, tmp_path / "foreign.pth")
+    with pytest.raises(ConfigError, match="not an AlexNet"):
+        Lpips(tmp_path / "foreign.pth")
+
+
+def test_lpips_pipeline_runs_on_a_weights_file(tmp_path):
+    # random backbone weights: only the loading and the distance properties are checked here
+    torch.manual_seed(0)
+    sd = {f"features.{k}": v for k, v in alexnet_features().state_dict().items()}
+    torch.save(sd, tmp_path / "alexnet.pth")
+    lp = Lpips(tmp_path / "alexnet.pth")
+    a, b = torch.rand(64, 64, 3), torch.rand(64, 64, 3)
+    assert lp(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert lp(a, b) > 0
+
+
+def _poses(n: int) -> np.ndarray:
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    t = np.linspace(0, 2 * math.pi, n)
+    c2w[:, :3, 3] = np.stack([np.cos(t), np.sin(t), 0.1 * t], 1)
+    return c2w
+
+
+def test_ate_zero_for_a_rigidly_moved_copy_and_hand_computed_offset():
+    gt = _poses(30)
+    ts = np.arange(30) / 30.0
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])
+    T[:3, 3] = [3, -2, 1]
+    est = {i: np.linalg.inv(T @ gt[i]) for i in range(30)}
+    assert ate(ts, est, gt, "se3")["rmse"] < 1e-9
+    # alternate +-1 cm along z on top of the truth: the alignment cannot remove it -> RMSE 1 cm
+    noisy = {}
+    for i in range(30):
+        c = gt[i].copy()
+        c[2, 3] += 0.01 if i % 2 else -0.01
+        noisy[i] = np.linalg.inv(c)
+    assert ate(ts, noisy, gt, "se3")["rmse"] == pytest.approx(0.01, rel=1e-3)
+
+
+def test_ate_sim3_removes_scale_and_reports_missing_ground_truth():
+    gt = _poses(20)
+    ts = np.arange(20) / 30.0
+    scaled = {i: np.linalg.inv(np.block([[gt[i][:3, :3], 0.5 * gt[i][:3, 3:]], [np.zeros((1, 3)), np.ones((1, 1))]])) for i in range(20)}
+    r = ate(ts, scaled, gt, "sim3")
+    assert r["rmse"] < 1e-9 and r["scale"] == pytest.approx(2.0, rel=1e-6)
+    assert ate(ts, scaled, None)["rmse"] is None
