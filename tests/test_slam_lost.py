@@ -17,7 +17,8 @@ def test_blank_stretch_is_reported_and_recovered():
     assert all(not r.tracked for r in run.results if r.frame_index in lost)
     traj = fe.trajectory()
     assert set(traj).isdisjoint(lost)
-    assert max(lost) < 30, "tracking did not resume after the blank stretch"
+    # a new map segment starts after restart_after_lost frames without relocalization
+    assert max(lost) <= 26 + fe.cfg.tracking.restart_after_lost, "tracking did not resume after the blank"
     assert len(traj) + len(lost) == len(seq)
     # the segment after the restart is re-attached by the loop closure
     assert ate(seq.timestamps, traj, seq.gt_poses, "se3")["rmse"] < 0.02

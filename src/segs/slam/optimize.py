@@ -105,13 +105,14 @@ def _pose_residuals(x, w2c0, P, uv, ur, w, K, bf, stereo, w_ur):
 def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray | None,
                 inv_sigma2: np.ndarray, K: np.ndarray, bf: float, rounds: int = 4,
                 min_inliers: int = 6, iterations: int = 20,
-                ur_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                ur_sigma: float | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only bundle adjustment of a w2c from map points P [M,3] and keypoints uv [M,2].
 
     ORB-SLAM's PoseOptimization: `rounds` optimisations (scipy least_squares, trust region,
     Huber loss at sqrt(5.991), residuals whitened by the keypoint's octave sigma; stereo /
     RGB-D observations (ur >= 0) add the right-image coordinate); after each round every match
     is classified by its chi2 against 5.991 / 7.815 and only inliers enter the next.
+    warm: the start pose is already refined (no gradual widening of the kernel in round one).
     Returns (w2c [4,4], inlier mask [M]).
     """
     n = len(P)
@@ -128,7 +129,8 @@ def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray 
             return w2c, inl
         # Huber by iteratively reweighted least squares; the first round widens the kernel
         # gradually (the prediction may be far off), the last round is plain least squares.
-        scales = (10.0, 3.0, 1.0) if r == 0 else ((1.0,) if r < rounds - 1 else (None,))
+        first = (1.0,) if warm else (10.0, 3.0, 1.0)
+        scales = first if r == 0 else ((1.0,) if r < rounds - 1 else (None,))
         for sc in scales:
             if sc is None:
                 hw = np.ones(int(inl.sum()))
@@ -148,14 +150,34 @@ def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray 
     return w2c, inl
 
 
-def _solve_lm(args, iterations: int) -> np.ndarray:
-    """Levenberg-Marquardt (MINPACK via scipy) on the 6-vector pose increment."""
-    from scipy.optimize import least_squares
+class _CachedProblem:
+    """Residuals and Jacobian computed together once per x (MINPACK asks for them separately)."""
 
-    sol = least_squares(lambda x: _pose_residuals(x, *args)[0], np.zeros(6),
-                        jac=lambda x: _pose_residuals(x, *args)[1], method="lm", max_nfev=iterations,
-                        x_scale="jac")
-    return sol.x
+    def __init__(self, args):
+        self.args, self.x, self.r, self.J = args, None, None, None
+
+    def _eval(self, x):
+        if self.x is None or not np.array_equal(x, self.x):
+            self.x = np.array(x)
+            self.r, self.J = _pose_residuals(x, *self.args)
+
+    def residuals(self, x):
+        self._eval(x)
+        return self.r
+
+    def jacobian(self, x):
+        self._eval(x)
+        return self.J
+
+
+def _solve_lm(args, iterations: int) -> np.ndarray:
+    """Levenberg-Marquardt (MINPACK lmder via scipy.optimize.leastsq) on the pose increment [6]."""
+    from scipy.optimize import leastsq
+
+    prob = _CachedProblem(args)
+    # full_output: an exhausted evaluation budget is an ordinary outcome here, not a warning
+    x = leastsq(prob.residuals, np.zeros(6), Dfun=prob.jacobian, maxfev=iterations, full_output=True)[0]
+    return np.asarray(x, np.float64)
 
 
 def pnp_ransac(P: np.ndarray, uv: np.ndarray, K: np.ndarray, reproj: float = 4.0,

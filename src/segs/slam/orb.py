@@ -87,7 +87,9 @@ class OrbFrontend(Frontend):
         self._worker: threading.Thread | None = None
         self._worker_error: BaseException | None = None
         self._busy = False
-        self.times: dict[str, list[float]] = {"track": [], "mapping": [], "loop": []}
+        # seconds per frame: features (ORB, depth / stereo), track (features + tracking); per keyframe:
+        # mapping (local mapping incl. BA), loop (loop detection and closing)
+        self.times: dict[str, list[float]] = {"features": [], "track": [], "mapping": [], "loop": []}
 
     def _reset_state(self) -> None:
         self.map = Map(self.scales)
@@ -106,7 +108,9 @@ class OrbFrontend(Frontend):
         self._raise_worker_error()
         t0 = time.perf_counter()
         sf = self.builder.build(frame)
+        t1 = time.perf_counter()
         kf = self.tracker.track(sf)
+        self.times["features"].append(t1 - t0)
         self.times["track"].append(time.perf_counter() - t0)
         if sf.w2c is None:
             self._lost.add(frame.index)

@@ -241,15 +241,17 @@ class Tracker:
         frame.w2c = w2c
         return self._optimize(frame)
 
-    def _optimize(self, frame: SlamFrame) -> int:
-        """Motion-only optimisation of frame.w2c on its matches; marks outliers; -> inliers."""
+    def _optimize(self, frame: SlamFrame, warm: bool = False) -> int:
+        """Motion-only optimisation of frame.w2c on its matches; marks outliers; -> inliers.
+
+        warm: frame.w2c was already optimised (the local-map step after frame-to-frame tracking)."""
         m = self.sys.map
         idx = np.flatnonzero(frame.points >= 0)
         pids = frame.points[idx]
         ur = frame.ur[idx] if self.sys.sensor != "mono" else None
         w2c, inl = refine_pose(frame.w2c, m.pos[pids], frame.kp.uv[idx], ur,
                                1.0 / self.sys.sigma2[frame.kp.octave[idx]], self.sys.K, self.sys.bf,
-                               ur_sigma=self.sys.ur_sigma)
+                               ur_sigma=self.sys.ur_sigma, warm=warm)
         frame.w2c = w2c
         frame.outlier[:] = False
         frame.outlier[idx[~inl]] = True
@@ -295,7 +297,7 @@ class Tracker:
         frame.points[frame.outlier] = -1
         frame.outlier[:] = False
         self._search_local(frame, th if th is not None else self._local_th(frame))
-        n = self._optimize(frame)
+        n = self._optimize(frame, warm=True)
         inl = frame.points[(frame.points >= 0) & ~frame.outlier]
         np.add.at(m.found, inl, 1)
         recent = frame.index - self.last_reloc_frame < 30
