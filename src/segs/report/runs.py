@@ -53,12 +53,13 @@ class Run:
 
     @property
     def method(self) -> str:
-        """Method / ablation name: the ablation chosen, else the model (segs, plain_3dgs)."""
+        """Method / ablation name: sweep/method or ablation chosen, else the model (segs, plain_3dgs)."""
         if not self.choices:  # a job that never started: what its overrides say, if anything
             named = {o.split("=", 1)[0].lstrip("+"): o.split("=", 1)[1] for o in self.overrides if "=" in o}
             return next((named[k] for k in METHOD_KEYS if k in named), "?")
-        if self.choices.get("ablation"):
-            return str(self.choices["ablation"])
+        for key in ("sweep/method", "ablation"):
+            if self.choices.get(key):
+                return str(self.choices[key])
         model = self.choices.get("model") or "segs"
         return str(model)
 
