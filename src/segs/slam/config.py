@@ -44,6 +44,7 @@ class TrackingConfig:
     rgbd_new_points: str = "all"  # "all": every unmatched keypoint with depth; "close": < ThDepth
     reloc_candidates: int = 10
     reloc_min_matches: int = 15
+    recent_lost: int = 30  # lost for at most this many frames: try the last reference keyframe first
     restart_after_lost: int = 10  # stereo / RGB-D: frames lost before a new map segment anchored
     # at the last tracked pose (0: never; monocular never restarts: its scale would be unrelated)
 
@@ -61,8 +62,9 @@ class InitConfig:
 class MappingConfig:
     triangulate_neighbors: int = 10  # covisible keyframes to triangulate with (mono: x2)
     fuse_neighbors: int = 10
-    triangulate_ratio: float = 0.8
+    triangulate_ratio: float = 0.6
     min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
+    min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
     ba_window: int = 10  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 20  # keyframes held fixed around the window
     ba_iterations: tuple = (5, 10)  # LM iterations before / after removing outliers

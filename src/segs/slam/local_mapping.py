@@ -29,6 +29,7 @@ class LocalMapper:
         self.cfg = system.cfg.mapping
         self.recent: list[int] = []
         self.ba_times: list[float] = []
+        self.cos_parallax = float(np.cos(np.radians(self.cfg.min_parallax_deg)))
 
     def __getstate__(self) -> dict:
         """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
@@ -161,7 +162,7 @@ class LocalMapper:
         cos_st1 = np.where(s1, np.cos(2 * np.arctan2(base_stereo / 2, np.where(s1, d1, 1))), 2.0)
         cos_st2 = np.where(s2, np.cos(2 * np.arctan2(base_stereo / 2, np.where(s2, d2, 1))), 2.0)
         cos_st = np.minimum(cos_st1, cos_st2)
-        tri = (cos_rays > 0) & (cos_rays < cos_st) & ((s1 | s2) | (cos_rays < 0.9998))
+        tri = (cos_rays > 0) & (cos_rays < cos_st) & ((s1 | s2) | (cos_rays < self.cos_parallax))
         X = triangulate(P1, K @ kf2.w2c[:3], x1, x2)
         use1 = ~tri & s1 & (cos_st1 <= cos_st2)
         use2 = ~tri & s2 & ~use1

@@ -87,9 +87,10 @@ class OrbFrontend(Frontend):
         self._worker: threading.Thread | None = None
         self._worker_error: BaseException | None = None
         self._busy = False
-        # seconds per frame: features (ORB, depth / stereo), track (features + tracking); per keyframe:
-        # mapping (local mapping incl. BA), loop (loop detection and closing)
-        self.times: dict[str, list[float]] = {"features": [], "track": [], "mapping": [], "loop": []}
+        # seconds per frame: features (ORB, depth / stereo), track (features + tracking; wall clock
+        # and process CPU time); per keyframe: mapping (local mapping incl. BA), loop (closing)
+        self.times: dict[str, list[float]] = {"features": [], "track": [], "track_cpu": [], "mapping": [],
+                                              "loop": []}
 
     def _reset_state(self) -> None:
         self.map = Map(self.scales)
@@ -106,12 +107,13 @@ class OrbFrontend(Frontend):
     # ------------------------------------------------------------------ Frontend API
     def process(self, frame: Frame) -> FrameResult:
         self._raise_worker_error()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         sf = self.builder.build(frame)
         t1 = time.perf_counter()
         kf = self.tracker.track(sf)
         self.times["features"].append(t1 - t0)
         self.times["track"].append(time.perf_counter() - t0)
+        self.times["track_cpu"].append(time.process_time() - c0)
         if sf.w2c is None:
             self._lost.add(frame.index)
             return FrameResult(frame.index, None)

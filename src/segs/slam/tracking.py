@@ -62,11 +62,11 @@ class Tracker:
             ok = False
             if self.state == "ok":
                 if self.velocity is not None and self.last is not None:
-                    ok = self._track_motion(frame)
-                if not ok:
-                    ok = self._track_reference(frame)
-                if ok:
-                    ok = self._track_local_map(frame)
+                    ok = self._track_motion(frame) and self._track_local_map(frame)
+                if not ok:  # the reference keyframe (descriptors, then PnP RANSAC), then the local map
+                    frame.points[:] = -1
+                    frame.outlier[:] = False
+                    ok = self._track_reference(frame) and self._track_local_map(frame)
             else:
                 ok = self._relocalize(frame)
             if not ok:
@@ -344,7 +344,12 @@ class Tracker:
         bow = sysm.bow_of(frame.kp.desc)
         cands = sysm.kfdb.candidates(bow, set(), 0.0, {k: kf.covisible(10) for k, kf in m.kfs.items()},
                                      max_out=self.cfg.reloc_candidates)
-        for c in cands:
+        # recently lost: the last reference keyframe and its best neighbours come first
+        recent = []
+        ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
+        if ref is not None and self.lost_since is not None and frame.index - self.lost_since <= self.cfg.recent_lost:
+            recent = [ref.kf_id] + ref.covisible(2)
+        for c in recent + [c for c in cands if c not in recent]:
             kf = m.kfs.get(c)
             if kf is None:
                 continue
