@@ -81,6 +81,8 @@ def test_jobs_that_never_started_are_listed_from_multirun_yaml(tmp_path):
     runs = collect([sweep])
     assert [r.status for r in runs] == ["finished", "not started"] and runs[1].overrides == ["+x=2", "seed=0"]
     assert "1 never started" in write_report([sweep])["markdown"].read_text()
+    fake_run(tmp_path / "rerun" / "0", ["+x=2", "seed=0"], {})  # the missing job, run again elsewhere
+    assert [r.status for r in collect([sweep, tmp_path / "rerun"])] == ["finished", "finished"]
 
 
 def test_stability_chart_and_table_per_kind_and_level(tmp_path):

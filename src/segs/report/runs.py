@@ -177,17 +177,20 @@ def _same(a: list[str], b: list[str]) -> bool:
 
 
 def collect(dirs: list[str | Path]) -> list[Run]:
-    """Every run under the given run / multirun folders, plus expected jobs that never started."""
-    runs: list[Run] = []
-    for d in map(Path, dirs):
+    """Every run under the given run / multirun folders, plus expected jobs that never started.
+
+    A job expected by one multirun but found in another given folder (a rerun of the jobs a
+    killed sweep left) counts as started.
+    """
+    dirs = [Path(d) for d in dirs]
+    for d in dirs:
         if not d.is_dir():
             raise UserInputError(f"segs.report: {d} is not a folder")
-        found = [load_run(p) for p in find_run_dirs(d)]
-        expected = expected_jobs(d)
-        for job in expected or []:
-            if not any(_same(job, r.overrides) for r in found):
-                found.append(Run(path=d, overrides=job, started=False))
-        runs += found
+    runs = [load_run(p) for d in dirs for p in find_run_dirs(d)]
+    for d in dirs:
+        for job in expected_jobs(d) or []:
+            if not any(_same(job, r.overrides) for r in runs):
+                runs.append(Run(path=d, overrides=job, started=False))
     if not runs:
         raise UserInputError(f"segs.report: no run folders (.hydra/overrides.yaml) under {', '.join(map(str, dirs))}")
     return runs
