@@ -27,19 +27,27 @@ class KnownPosesFrontend(Frontend):
     since the last keyframe that also triggers one; n_features / fast_threshold: ORB settings;
     depth_range: valid depth (m) for lifting; max_reproj_px / min_parallax_deg: monocular
     triangulation checks; stereo_num_disparities: SGBM search range (multiple of 16);
-    max_hamming: largest descriptor distance of a match with the previous keyframe.
+    max_hamming: largest descriptor distance of a match with the previous keyframe;
+    point_source: "orb" (keypoints, like an indirect SLAM's map) or "grid" (every grid_stride-th
+    pixel with depth, RGB-D / stereo only: dense structure for texture-poor scenes).
     """
 
     def __init__(self, camera: Camera, sensor: str, keyframe_every: int = 10, kf_translation: float = 0.1,
                  kf_rotation_deg: float = 10.0, n_features: int = 1000, fast_threshold: int = 7,
                  depth_range: tuple[float, float] = (0.1, 8.0), max_reproj_px: float = 2.0,
-                 min_parallax_deg: float = 1.0, stereo_num_disparities: int = 64, max_hamming: int = 50):  # fmt: skip
+                 min_parallax_deg: float = 1.0, stereo_num_disparities: int = 64, max_hamming: int = 50,
+                 point_source: str = "orb", grid_stride: int = 8):  # fmt: skip
         if keyframe_every < 1:
             raise ConfigError(f"slam.keyframe_every={keyframe_every} is out of range: expected >= 1")
         if n_features < 1:
             raise ConfigError(f"slam.n_features={n_features} is out of range: expected >= 1")
         if sensor not in ("mono", "stereo", "rgbd"):
             raise ConfigError(f"camera.sensor={sensor!r}: expected mono, stereo or rgbd")
+        if point_source not in ("orb", "grid") or (point_source == "grid" and sensor == "mono"):
+            raise ConfigError(f"slam.point_source={point_source!r}: expected orb, or grid with an rgbd / stereo camera")
+        if grid_stride < 1:
+            raise ConfigError(f"slam.grid_stride={grid_stride} is out of range: expected >= 1")
+        self.point_source, self.grid_stride = point_source, grid_stride
         self.camera, self.sensor = camera, sensor
         self.keyframe_every, self.kf_translation = keyframe_every, kf_translation
         self.kf_rotation = np.deg2rad(kf_rotation_deg)
@@ -116,7 +124,9 @@ class KnownPosesFrontend(Frontend):
 
     # -- structure ------------------------------------------------------------------------------
     def _lift(self, frame: Frame, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoints of this keyframe -> new world points [M,3] and colours [M,3]."""
+        """Keypoints (or grid pixels) of this keyframe -> new world points [M,3] and colours [M,3]."""
+        if self.point_source == "grid":
+            return self._lift_grid(frame, w2c)
         kps, desc = self.orb.detectAndCompute(_gray(frame.rgb), None)
         uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
         desc = desc if desc is not None else np.zeros((0, 32), np.uint8)
@@ -131,6 +141,15 @@ class KnownPosesFrontend(Frontend):
             xyz, ok = self._backproject(uv, depth, w2c)
         ok &= ~seen
         self._last_kf = {"w2c": w2c, "uv": uv, "desc": desc, "has_point": ok | seen, "frame": frame.index}
+        return xyz[ok], self._colors(frame.rgb, uv[ok])
+
+    def _lift_grid(self, frame: Frame, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        s = self.grid_stride
+        v, u = np.mgrid[s // 2 : frame.rgb.shape[0] : s, s // 2 : frame.rgb.shape[1] : s]
+        uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float32)
+        depth = frame.depth if self.sensor == "rgbd" else self._stereo_depth(frame)
+        xyz, ok = self._backproject(uv, depth, w2c)
+        self._last_kf = {"w2c": w2c, "uv": uv[:0], "desc": np.zeros((0, 32), np.uint8), "has_point": ok[:0], "frame": frame.index}
         return xyz[ok], self._colors(frame.rgb, uv[ok])
 
     def _match_last(self, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -61,7 +61,7 @@ class Tracker:
                 return self._initialize(frame)
             ok = False
             if self.state == "ok":
-                if self.velocity is not None and self.last is not None:
+                if self.last is not None and self.last.index == frame.index - 1:
                     ok = self._track_motion(frame) and self._track_local_map(frame)
                 if not ok:  # the reference keyframe (descriptors, then PnP RANSAC), then the local map
                     frame.points[:] = -1
@@ -180,8 +180,14 @@ class Tracker:
 
     # ------------------------------------------------------------------ frame-to-frame
     def _track_motion(self, frame: SlamFrame) -> bool:
-        frame.w2c = orthonormalize(self.velocity @ self.last.w2c)
+        """Constant-velocity prediction + projection matching of the last frame's points. Without a
+        velocity (after a relocalization) the last pose is the prediction, with a doubled window."""
         th = self.cfg.window_motion if self.sys.sensor == "mono" else self.cfg.window_motion_stereo
+        if self.velocity is None:
+            frame.w2c = self.last.w2c.copy()
+            th *= 2
+        else:
+            frame.w2c = orthonormalize(self.velocity @ self.last.w2c)
         n = self._search_last(frame, th)
         if n < self.cfg.min_matches_motion:
             frame.points[:] = -1
@@ -387,7 +393,7 @@ class Tracker:
         m, cfg, sysm = self.sys.map, self.cfg, self.sys
         if not sysm.accepts_keyframes() and frame.index - self.last_kf_frame < cfg.kf_max_gap:
             return False
-        if frame.index - self.last_reloc_frame < 2:
+        if frame.index == self.last_reloc_frame and len(m.kfs) > 1:  # not the relocalized frame itself
             return False
         ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
         if ref is None:
