@@ -301,7 +301,7 @@ class LocalMapper:
             problem = self._build_problem(window, fixed_max)
         if problem is None:
             return
-        poses, fixed, points, obs = problem
+        poses, fixed, points, obs, rigid = problem
         ba = sysm.ba
         it1, it2 = (tuple(iterations) + (0,))[:2]
         new_poses, new_points = ba.run(poses, fixed, points, obs, it1)
@@ -316,8 +316,19 @@ class LocalMapper:
             P = np.array([new_points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
             bad, _ = ba.chi2(new_poses, P, obs)
         with m.lock:
+            self._move_rigid(rigid, poses, new_poses)
             self._write_back(window, new_poses, fixed, new_points, obs, bad)
         self.ba_times.append(time.perf_counter() - t0)
+
+    def _move_rigid(self, rigid, old_poses, new_poses) -> None:
+        """Points left out of BA follow their only keyframe: p <- T_new^-1 T_old p."""
+        m = self.sys.map
+        kfs, pids = rigid
+        for k in np.unique(kfs).tolist():
+            sel = pids[(kfs == k) & m.valid[pids]]
+            if len(sel) and k in m.kfs:
+                M = inv_se3(new_poses[k]) @ old_poses[k]
+                m.pos[sel] = m.pos[sel] @ M[:3, :3].T + M[:3, 3]
 
     def _build_problem(self, window: list[int], fixed_max: int):
         m, mono = self.sys.map, self.sys.sensor == "mono"
@@ -353,13 +364,17 @@ class LocalMapper:
         ur = np.concatenate([m.kfs[k].ur[i] for k, i in zip(kfs, ids)]) if not mono else np.full(len(kk), -1.0)
         uv = np.concatenate([m.kfs[k].kp.uv[i] for k, i in zip(kfs, ids)])
         octv = np.concatenate([m.kfs[k].kp.octave[i] for k, i in zip(kfs, ids)])
-        # a point needs two views (or one with depth) to be determined
-        n_view = np.bincount(pp, minlength=m.n)[pp] + np.bincount(pp, weights=(ur >= 0), minlength=m.n)[pp]
-        keep = n_view >= 2
+        # a point needs two views (or one with depth) to be determined; a point seen only by one
+        # keyframe with depth adds nothing to the poses (3 equations, 3 unknowns): it is left out
+        # and moved rigidly with its keyframe afterwards ("rigid"), which halves RGB-D problems
+        n_in = np.bincount(pp, minlength=m.n)[pp]
+        n_view = n_in + np.bincount(pp, weights=(ur >= 0), minlength=m.n)[pp]
+        rigid = (n_in == 1) & (ur >= 0) & (m.n_obs[pp] == 2)
+        keep = (n_view >= 2) & ~rigid
         obs = Observations(kk[keep], pp[keep], uv[keep], ur[keep], octv[keep])
         pts = {p: m.pos[p].copy() for p in np.unique(obs.pid).tolist()}
         poses = {k: m.kfs[k].w2c.copy() for k in kfs}
-        return poses, fixed, pts, obs
+        return poses, fixed, pts, obs, (kk[rigid], pp[rigid])
 
     def _write_back(self, window, new_poses, fixed, new_points, obs, bad) -> None:
         m = self.sys.map
