@@ -92,13 +92,14 @@ def test_stability_chart_and_table_per_kind_and_level(tmp_path):
     fake_run(sweep / "2", ["s=2"], {"tracked_fraction": 0.5, "ate_rmse_m": 0.3}, stress={"kind": "noise", "level": 32})
     fake_run(sweep / "3", ["s=3"], {}, stress={"kind": "fast_motion", "level": 3})
     fake_run(sweep / "4", ["s=4"], None, stress={"kind": "fast_motion", "level": 7})
+    fake_run(sweep / "5", ["s=5"], None, stress={"kind": "fast_motion", "level": 15}, failure="IndexError: boom")
     written = write_report([sweep], min_tracked=0.9, max_ate_m=0.05)
     assert written["stability"].stat().st_size > 0
     table = stability_table(collect([sweep]))
     noise = table.split("### noise", 1)[1].split("###", 1)[0]
     assert "noise 0 | noise 8 | noise 32" in noise and "| 32 | 0 |" in noise  # fails from level 32, no crash
     fast = table.split("### fast_motion", 1)[1]
-    assert "**CRASH**" in fast and "| 7 | 1 |" in fast  # the baseline (level 0) joins every kind
+    assert "**no metrics**" in fast and "**CRASH**" in fast and "| 7 | 2 |" in fast  # baseline joins every kind
 
 
 def test_pareto_front_keeps_the_best_accuracy_per_cost():

@@ -177,8 +177,9 @@ def stability_chart(runs: list[Run], path: Path, min_tracked: float = 0.9, max_a
         _stability_row(axes, kind, series, colours, min_tracked, max_ate_m)
         axes[0].set_title(kind, loc="left", fontsize=9, fontweight="bold")
     handles = [Line2D([], [], color=c, marker=_marker(n, colours), label=n) for n, c in colours.items()]
-    handles += [Line2D([], [], ls="", marker="v", color="grey", label=f"fails (tracked < {min_tracked:.0%} or ATE > "
-                       f"{max_ate_m * 100:g} cm)"), Line2D([], [], ls="", marker="x", color="red", label="crash")]  # fmt: skip
+    fails = f"fails (tracked < {min_tracked:.0%} or ATE > {max_ate_m * 100:g} cm)"
+    handles += [Line2D([], [], ls="", marker="v", color="grey", label=fails),
+                Line2D([], [], ls="", marker="x", color="red", label="crash / no metrics.json")]  # fmt: skip
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=7)
     _header(fig, "Stability under stress", runs)
     fig.tight_layout(rect=(0, 0.04, 1, 1))

@@ -75,7 +75,7 @@ def series_key(run: Run, runs: list[Run]) -> str:
     """Series label: the method, with the frontend / experiment when those differ between runs."""
     label = run.method
     for group in ("slam", "experiment"):
-        if len({str(r.choices.get(group)) for r in runs}) > 1:
+        if run.choices and len({str(r.choices.get(group)) for r in runs if r.choices}) > 1:
             label += f" {group}={run.choices.get(group)}"
     return label
 
@@ -137,7 +137,7 @@ def _stability_cell(r: Run) -> str:
     if not r.started:
         return "not started"
     if r.crashed:
-        return "**CRASH**"
+        return "**CRASH**" if r.failure else "**no metrics**"
     ate = fmt(r.metric("ate_rmse_m"), ".1f", 100)
     return f"{ate} / {fmt(r.metric('tracked_fraction'), '.0f', 100)}% / {fmt(r.metric('psnr'), '.1f')}"
 
@@ -147,8 +147,10 @@ def stability_table(runs: list[Run], min_tracked: float = 0.9, max_ate_m: float 
     groups = stress_groups(runs)
     if not groups:
         return ""
-    blocks = [f"Cells: ATE cm / frames tracked % / test PSNR dB. A level *fails* when the job crashed, "
-              f"tracked < {min_tracked:.0%} or ATE > {max_ate_m * 100:g} cm."]  # fmt: skip
+    blocks = [f"Cells: ATE cm / frames tracked % / test PSNR dB (against the stressed test frames). A level *fails* "
+              f"when the job left no metrics.json (**CRASH**: it raised; **no metrics**: crashed, killed or still "
+              f"running), tracked < {min_tracked:.0%} or ATE > {max_ate_m * 100:g} cm. crashes: jobs without "
+              f"metrics.json."]  # fmt: skip
     for kind, series in groups.items():
         levels = sorted({r.stress[1] for rs in series.values() for r in rs})
         header = ["method"] + [f"{kind} {lv:g}" for lv in levels] + ["fails from", "crashes"]
