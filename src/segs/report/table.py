@@ -137,7 +137,8 @@ def _stability_cell(r: Run) -> str:
     if not r.started:
         return "not started"
     if r.crashed:
-        return "**CRASH**" if r.failure else "**no metrics**"
+        kind = (r.failure or "").split(":", 1)[0]
+        return f"**CRASH {kind}**" if kind.isidentifier() else "**CRASH**" if r.failure else "**no metrics**"
     ate = fmt(r.metric("ate_rmse_m"), ".1f", 100)
     return f"{ate} / {fmt(r.metric('tracked_fraction'), '.0f', 100)}% / {fmt(r.metric('psnr'), '.1f')}"
 
@@ -148,8 +149,8 @@ def stability_table(runs: list[Run], min_tracked: float = 0.9, max_ate_m: float 
     if not groups:
         return ""
     blocks = [f"Cells: ATE cm / frames tracked % / test PSNR dB (against the stressed test frames). A level *fails* "
-              f"when the job left no metrics.json (**CRASH**: it raised; **no metrics**: crashed, killed or still "
-              f"running), tracked < {min_tracked:.0%} or ATE > {max_ate_m * 100:g} cm. crashes: jobs without "
+              f"when the job left no metrics.json (**CRASH** and the exception type: it raised; **no metrics**: "
+              f"crashed, killed or still running), tracked < {min_tracked:.0%} or ATE > {max_ate_m * 100:g} cm. crashes: jobs without "
               f"metrics.json."]  # fmt: skip
     for kind, series in groups.items():
         levels = sorted({r.stress[1] for rs in series.values() for r in rs})
