@@ -4,8 +4,9 @@
     python bench/raster.py --runs 20 --backends cpu --build-times
 
 Scenes come from segs.raster.scenes.random_scene (seed 0): 320x240 with 20k Gaussians and
-640x480 with 100k. Each backend does --warmup untimed iterations, then --runs timed ones; the
-table shows medians. The loss uses image, depth and alpha, so backward covers all three.
+640x480 with 100k. Each backend does --warmup untimed iterations, then --runs timed ones,
+alternating between backends (a load change on a shared machine hits all of them); the table
+shows medians. The loss uses image, depth and alpha, so backward covers all three.
 "Mpair/s" is the nominal work, (tile, Gaussian) pairs of the 3-sigma tile lists x 256 pixels,
 divided by the forward+backward time: the same numerator for every backend.
 Figures are also written as JSON (default outputs/bench/raster.json).
@@ -67,34 +68,53 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def time_backend(scene, backend: str, runs: int, warmup: int) -> dict:
-    device = "cuda" if backend == "cuda" else "cpu"
-    params = [p.detach().to(device).requires_grad_(True) for p in scene.params()]
-    cam = (scene.viewmat.to(device), scene.K.to(device))
-    h, w = scene.height, scene.width
-    weights = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1)).to(device)
-    fwd, bwd = [], []
-    for i in range(warmup + runs):
-        for p in params:
+class Timer:
+    """One backend on one scene: timed forward and backward iterations."""
+
+    def __init__(self, scene, backend: str):
+        self.backend, self.device = backend, ("cuda" if backend == "cuda" else "cpu")
+        self.params = [p.detach().to(self.device).requires_grad_(True) for p in scene.params()]
+        self.cam = (scene.viewmat.to(self.device), scene.K.to(self.device))
+        self.size = (scene.width, scene.height)
+        w, h = self.size
+        self.weights = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1)).to(self.device)
+        self.fwd, self.bwd = [], []
+
+    def step(self, record: bool) -> None:
+        for p in self.params:
             p.grad = None
-        _sync(device)
+        _sync(self.device)
         t0 = time.perf_counter()
-        r = rasterize(*params, *cam, w, h, backend=backend)
-        _sync(device)
+        r = rasterize(*self.params, *self.cam, *self.size, backend=self.backend)
+        _sync(self.device)
         t1 = time.perf_counter()
-        loss = (r.image * weights).sum() + 0.1 * r.depth.sum() + r.alpha.sum()
+        loss = (r.image * self.weights).sum() + 0.1 * r.depth.sum() + r.alpha.sum()
         loss.backward()
-        _sync(device)
+        _sync(self.device)
         t2 = time.perf_counter()
-        if i >= warmup:
-            fwd.append(t1 - t0)
-            bwd.append(t2 - t1)
-    med = lambda xs: 1000.0 * statistics.median(xs)  # noqa: E731
-    out = {"forward_ms": med(fwd), "backward_ms": med(bwd),
-           "fwd_bwd_ms": med([a + b for a, b in zip(fwd, bwd)]), "runs": runs}
-    if backend == "cpu":
-        out["cpu_work"] = dict(_cpu_backend.LAST_STATS)
-    return out
+        if record:
+            self.fwd.append(t1 - t0)
+            self.bwd.append(t2 - t1)
+
+    def summary(self) -> dict:
+        med = lambda xs: 1000.0 * statistics.median(xs)  # noqa: E731
+        out = {"forward_ms": med(self.fwd), "backward_ms": med(self.bwd),
+               "fwd_bwd_ms": med([a + b for a, b in zip(self.fwd, self.bwd)]), "runs": len(self.fwd)}
+        if self.backend == "cpu":
+            out["cpu_work"] = dict(_cpu_backend.LAST_STATS)
+        return out
+
+
+def time_backends(scene, backends: list[str], runs: int, warmup: int) -> dict:
+    """Medians per backend; iterations alternate between backends so load changes hit all."""
+    timers = {b: Timer(scene, b) for b in backends}
+    start = time.perf_counter()
+    for i in range(warmup + runs):
+        for t in timers.values():
+            t.step(record=i >= warmup)
+        print(f"#   iteration {i + 1}/{warmup + runs} ({time.perf_counter() - start:.0f} s)",
+              file=sys.stderr, flush=True)
+    return {b: t.summary() for b, t in timers.items()}
 
 
 def build_times() -> dict:
@@ -141,11 +161,10 @@ def main() -> None:
         stats = scene_stats(scene, backends[0])
         pairs = stats["nominal_pairs"]
         info.setdefault("scenes", {})[spec] = stats
+        print(f"# {size} N={n}: {', '.join(backends)} ...", file=sys.stderr, flush=True)
         rows = {}
-        for b in backends:
-            print(f"# {b} {size} N={n} ...", file=sys.stderr, flush=True)
-            rows[b] = {"backend": b, "size": size, "n": int(n),
-                       **time_backend(scene, b, args.runs, args.warmup)}
+        for b, summary in time_backends(scene, backends, args.runs, args.warmup).items():
+            rows[b] = {"backend": b, "size": size, "n": int(n), **summary}
             rows[b]["mpairs_per_s"] = pairs / rows[b]["fwd_bwd_ms"] / 1e3
         for row in rows.values():
             if "torch" in rows:

@@ -42,13 +42,14 @@ def small_scene(n, width=48, height=40, seed=0, scale=(0.03, 0.3), **kw) -> Scen
 def render_with_grads(scene: Scene, backend: str, background=None):
     """Render, back-propagate a loss that uses image, depth and alpha; return everything."""
     params = [p.detach().clone().requires_grad_(True) for p in scene.params()]
-    bg = None if background is None else torch.tensor(background, dtype=scene.means.dtype)
+    dev = scene.means.device
+    bg = None if background is None else torch.tensor(background, dtype=scene.means.dtype, device=dev)
     if bg is not None:
         bg.requires_grad_(True)
     r = rasterize(*params, scene.viewmat, scene.K, scene.width, scene.height,
                   background=bg, backend=backend)
     h, w = scene.height, scene.width
-    weights = torch.linspace(0.5, 1.5, h * w * 3, dtype=r.image.dtype).reshape(h, w, 3)
+    weights = torch.linspace(0.5, 1.5, h * w * 3, dtype=r.image.dtype, device=dev).reshape(h, w, 3)
     loss = (r.image * weights).sum() + 0.3 * r.depth.sum() + 2.0 * (r.alpha * weights[..., 0]).sum()
     loss.backward()
     grads = {name: p.grad for name, p in zip(["means", "quats", "scales", "opacities", "colors"], params)}

@@ -43,14 +43,16 @@ def _cflags() -> list[str]:
 
 
 def _cpu_signature() -> str:
-    """Instruction-set flags of this CPU (the part of /proc/cpuinfo -march=native depends on)."""
+    """Model and instruction-set flags of this CPU (what -march=native depends on)."""
+    keys, found = ("model name", "flags", "Features"), {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features", "model name")):
-                return line
+            key = line.split(":", 1)[0].strip()
+            if key in keys:
+                found.setdefault(key, line)
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    return "\n".join(found.values()) or platform.processor() or platform.machine()
 
 
 def cache_dir() -> Path:

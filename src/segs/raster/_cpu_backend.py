@@ -91,14 +91,13 @@ class _RasterizeCpu(torch.autograd.Function):
         LAST_STATS.update(listed=st.n_listed, intersections=st.n_intersections,
                           evaluations=st.evaluations)
         ctx.n = means2d.shape[0]
-        ctx.hw = (height, width)
         return image, depth, alpha
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_image, g_depth, g_alpha):
         ext = load_extension()
-        n, (h, w) = ctx.n, ctx.hw
+        n = ctx.n
         grads_out = [_f32(g) for g in (g_image, g_depth, g_alpha)]
         g = [torch.empty(n, 2), torch.empty(n, 3), torch.empty(n, 3), torch.empty(n),
              torch.empty(n), torch.empty(3)]  # the kernel writes every entry
