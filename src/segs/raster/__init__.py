@@ -73,7 +73,8 @@ def rasterize(
     All tensors must share one float dtype (float32 or float64) and one device, with finite
     values; otherwise ValueError names the argument, its shape and the expected one.
     Gradients reach means, quats, scales, opacities, colors and background from image, depth
-    and alpha (not viewmat or K). Semantics (3D-GS): EWA projection with a 0.3 px^2 low-pass,
+    and alpha; viewmat too when it requires grad (the cpu backend then projects in PyTorch).
+    Semantics (3D-GS): EWA projection with a 0.3 px^2 low-pass,
     3-sigma extent, 16x16 tiles, front-to-back order by camera z, alpha = min(0.99, o exp(-s)),
     contributions below 1/255 skipped, a pixel stops before its transmittance drops below 1e-4.
     """

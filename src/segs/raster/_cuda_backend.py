@@ -6,11 +6,14 @@ tightened by its opacity (not a 3-sigma square). Images agree closely, not bit f
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 
 
+@functools.lru_cache(maxsize=1)
 def unavailable_reason() -> str | None:
-    """None if this backend can run, else why not."""
+    """None if this backend can run, else why not (checked once per process)."""
     if not torch.cuda.is_available():
         return "no CUDA device (torch.cuda.is_available() is False)"
     try:
