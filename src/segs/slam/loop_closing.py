@@ -95,17 +95,22 @@ class LoopCloser:
         if not cands:
             self.groups = []
             return []
+        # ORB-SLAM2's consistency check: each previous group extends at most one new group
         enough, new_groups = [], []
+        used = [False] * len(self.groups)
         for c in cands:
             group = {c} | set(m.kfs[c].conn)
             consistent_any = False
-            for prev, count in self.groups:
-                if group & prev:
-                    n = count + 1
+            for g, (prev, count) in enumerate(self.groups):
+                if not group & prev:
+                    continue
+                consistent_any = True
+                n = count + 1
+                if not used[g]:
                     new_groups.append((group, n))
-                    consistent_any = True
-                    if n >= self.cfg.consistency and c not in enough:
-                        enough.append(c)
+                    used[g] = True
+                if n >= self.cfg.consistency and c not in enough:
+                    enough.append(c)
             if not consistent_any:
                 new_groups.append((group, 0))
         self.groups = new_groups

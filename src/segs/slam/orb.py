@@ -123,8 +123,11 @@ class OrbFrontend(Frontend):
                 self._kf_frames[kf.kf_id] = frame.index
             else:
                 ref = sf.ref_kf
-                base = self.map.kf_pose(ref)
-                self._traj[frame.index] = ("rel", ref, sf.w2c @ inv_se3(base))
+                base = self.map.kf_pose(ref) if ref is not None else None
+                if base is None:  # no reference keyframe (cannot happen after initialization)
+                    self._traj[frame.index] = ("abs", None, sf.w2c.copy())
+                else:
+                    self._traj[frame.index] = ("rel", ref, sf.w2c @ inv_se3(base))
         if kf is not None:
             self._dispatch(kf)
         return FrameResult(frame.index, sf.w2c.copy(), kf.kf_id if kf is not None else None)
@@ -154,6 +157,9 @@ class OrbFrontend(Frontend):
         out = {}
         with self.map.lock:
             for idx, rec in sorted(self._traj.items()):
+                if rec[0] == "abs":
+                    out[idx] = rec[2].copy()
+                    continue
                 base = self.map.kf_pose(rec[1])
                 if base is None:
                     continue
@@ -263,7 +269,10 @@ class OrbFrontend(Frontend):
             self.kfdb.add(kf.kf_id, self.bow_of(kf.kp.desc))
 
     def reset_map(self) -> None:
+        """Drop a rejected (monocular) initial map; keyframe ids keep counting (never reused)."""
+        next_id = self.map.next_kf_id
         self.map = Map(self.scales)
+        self.map.next_kf_id = next_id
         self.kfdb = KeyFrameDatabase()
         self.mapper.recent = []
 
