@@ -49,21 +49,37 @@ def _finished(runs: list[Run], *keys: str) -> list[Run]:
     return [r for r in runs if r.metrics is not None and all(r.metric(k) is not None for k in keys)]
 
 
+LINESTYLES = ("-", "--", ":", "-.")
+
+
 def _scatter(ax, runs: list[Run], all_runs: list[Run], xkey: str, colours: dict, label_skip=(), front=False,
-             xscale: float = 1.0, labels: bool = True) -> None:  # fmt: skip
-    """PSNR against metrics[xkey], one colour per series, each point labelled by its own overrides."""
+             labels: bool = True, line_skip=("trainer.max_steps",)) -> None:  # fmt: skip
+    """PSNR against metrics[xkey], one colour per series.
+
+    Runs of a series that differ only in `line_skip` keys (the iteration budget) are joined by a
+    line and labelled once, at its last point; other runs are labelled by their own overrides.
+    """
     done = _finished(runs, xkey, "psnr")
     common = common_overrides(all_runs)
-    names = sorted({series_key(r, all_runs) for r in done})
-    for name in names:
+    for name in sorted({series_key(r, all_runs) for r in done}):
         pts = [r for r in done if series_key(r, all_runs) == name]
-        xs, ys = [r.metric(xkey) * xscale for r in pts], [r.metric("psnr") for r in pts]
-        ax.scatter(xs, ys, color=colours[name], marker=_marker(name, colours), label=name, zorder=3)
-        if labels:
-            for r, x, y in zip(pts, xs, ys):
-                ax.annotate(variant(r, common, label_skip), (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        ax.scatter([r.metric(xkey) for r in pts], [r.metric("psnr") for r in pts], color=colours[name],
+                   marker=_marker(name, colours), label=name, zorder=3)  # fmt: skip
+        groups: dict[str, list[Run]] = {}
+        for r in pts:
+            groups.setdefault(variant(r, common, tuple(label_skip) + tuple(line_skip)), []).append(r)
+        for i, (label, rs) in enumerate(groups.items()):
+            rs.sort(key=lambda r: r.metric(xkey))
+            if len(rs) > 1:
+                ax.plot([r.metric(xkey) for r in rs], [r.metric("psnr") for r in rs], color=colours[name],
+                        ls=LINESTYLES[i % len(LINESTYLES)], lw=0.8, zorder=2)  # fmt: skip
+            for r in rs[-1:] if len(rs) > 1 else rs:
+                text = label if len(rs) > 1 else variant(r, common, label_skip)
+                if labels and text:
+                    ax.annotate(text, (r.metric(xkey), r.metric("psnr")), fontsize=6, xytext=(3, 3),
+                                textcoords="offset points", color=colours[name])  # fmt: skip
     if front and done:
-        pf = pareto_front([(r.metric(xkey) * xscale, r.metric("psnr")) for r in done])
+        pf = pareto_front([(r.metric(xkey), r.metric("psnr")) for r in done])
         ax.step([p[0] for p in pf], [p[1] for p in pf], where="post", color="k", ls="--", lw=1,
                 label="Pareto front", zorder=2)  # fmt: skip
     ax.set_ylabel("test PSNR (dB)")
@@ -91,8 +107,8 @@ def speed_accuracy_chart(runs: list[Run], path: Path) -> Path | None:
     for row, (scene, rs) in enumerate(scenes.items()):
         ax1, ax2 = fig.add_subplot(len(scenes), 2, 2 * row + 1), fig.add_subplot(len(scenes), 2, 2 * row + 2)
         _scatter(ax1, rs, runs, "mapping_time_s", colours, front=True)
-        _scatter(ax2, rs, runs, "iterations", colours, front=True, label_skip=("trainer.max_steps",))
-        ax1.set(xscale="log", xlabel="mapping wall time (s)", title=f"{scene}: accuracy vs mapping time")
+        _scatter(ax2, rs, runs, "iterations", colours, front=True)
+        ax1.set(xscale="log", xlabel="mapping wall time (s)", title=f"{scene}: accuracy vs mapping time (lines: same run but the budget)")
         ax2.set(xscale="log", xlabel="iterations", title=f"{scene}: accuracy vs iterations")
         ax1.legend(fontsize=7)
     _header(fig, "Speed vs accuracy", runs)
@@ -128,7 +144,7 @@ def compactness_chart(runs: list[Run], path: Path) -> Path | None:
         ax1, ax2 = fig.add_subplot(len(scenes), 2, 2 * row + 1), fig.add_subplot(len(scenes), 2, 2 * row + 2)
         _scatter(ax1, rs, runs, "model_mb", colours, labels=False)
         _reference_lines(ax1, rs, runs, colours)
-        _scatter(ax2, rs, runs, "gaussians", colours)
+        _scatter(ax2, rs, runs, "gaussians", colours, line_skip=())
         for r in _finished(rs, "active_gaussians", "psnr", "gaussians"):
             c = colours[series_key(r, runs)]
             ax2.scatter([r.metric("active_gaussians")], [r.metric("psnr")], facecolors="none", edgecolors=[c], zorder=3)
