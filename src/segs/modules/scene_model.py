@@ -21,8 +21,12 @@ class View:
 
     @property
     def K(self) -> torch.Tensor:
-        """[3,3] float32."""
-        return torch.as_tensor(self.camera.K, dtype=torch.float32)
+        """[3,3] float32 for the rasterizer, whose pixel centres are at +0.5 (gsplat's convention);
+        Camera follows OpenCV (centres at integers), hence cx, cy + 0.5."""
+        K = torch.as_tensor(self.camera.K, dtype=torch.float32).clone()
+        K[0, 2] += 0.5
+        K[1, 2] += 0.5
+        return K
 
     @property
     def center(self) -> torch.Tensor:
