@@ -35,7 +35,8 @@ class TrackingConfig:
     min_inliers: int = 30  # local-map inliers to call a frame tracked
     min_inliers_reloc: int = 50  # idem, during the frames after a relocalization
     kf_max_gap: int = 15  # a keyframe at least every N frames (if c2 holds); authors: 15
-    kf_min_gap: int = 0  # and not sooner than this (the threaded mode also waits for mapping)
+    kf_min_gap: int = 3  # ratio-rule keyframes not sooner than this (paces single-thread mode)
+    kf_min_gap_mono: int = 0  # idem, monocular (its keyframes are its only source of new points)
     kf_ref_ratio: float = 0.9  # inliers / reference keyframe's points below this -> keyframe
     kf_ref_ratio_mono: float = 0.9
     kf_track_ratio: float = 0.5  # ... or below this share of the best count since the last keyframe

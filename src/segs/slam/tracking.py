@@ -412,13 +412,15 @@ class Tracker:
         ratio = cfg.kf_ref_ratio_mono if sysm.sensor == "mono" else cfg.kf_ref_ratio
         gap = frame.index - self.last_kf_frame
         c1a = gap >= cfg.kf_max_gap
-        c1b = gap >= cfg.kf_min_gap and sysm.mapping_idle()
+        min_gap = cfg.kf_min_gap_mono if sysm.sensor == "mono" else cfg.kf_min_gap
+        c1b = gap >= min_gap and sysm.mapping_idle()
         c1c = sysm.sensor != "mono" and (n_inl < 0.25 * n_ref or need_close)
-        # coverage: the tracked points fell below a share of the best count since the last keyframe
+        # coverage (ours): the tracked points fell below a share of the best count since the last
+        # keyframe; like c1c a need (tracking is about to fail), so it ignores kf_min_gap
         self._max_inl = max(self._max_inl, n_inl)
         low_cover = n_inl < cfg.kf_track_ratio * self._max_inl
         c2 = (n_inl < n_ref * ratio or need_close or low_cover) and n_inl > 15
-        return (c1a or c1b or c1c) and c2
+        return c2 and (c1a or c1b or c1c or low_cover)
 
     def _create_keyframe(self, frame: SlamFrame) -> KeyFrame:
         m = self.sys.map
