@@ -83,6 +83,10 @@ def test_jobs_that_never_started_are_listed_from_multirun_yaml(tmp_path):
     assert "1 never started" in write_report([sweep])["markdown"].read_text()
     fake_run(tmp_path / "rerun" / "0", ["+x=2", "seed=0"], {})  # the missing job, run again elsewhere
     assert [r.status for r in collect([sweep, tmp_path / "rerun"])] == ["finished", "finished"]
+    fake_run(sweep / "1", ["+x=2", "seed=0"], None)  # killed with its sweep: superseded by the rerun
+    runs = collect([sweep, tmp_path / "rerun"])
+    assert [r.status for r in runs] == ["finished", "superseded by a rerun", "finished"]
+    assert not any(r.crashed for r in runs)
 
 
 def test_stability_chart_and_table_per_kind_and_level(tmp_path):

@@ -36,20 +36,23 @@ class Run:
     metrics: dict | None = None
     failure: str | None = None  # first line of job_failed.txt
     started: bool = True  # False: expected from multirun.yaml, no job folder
+    superseded: bool = False  # no metrics, no error, and a rerun with the same overrides exists
 
     @property
     def status(self) -> str:
         """finished | failed (error recorded) | no metrics (crashed or still running) | not started."""
         if not self.started:
             return "not started"
+        if self.superseded:
+            return "superseded by a rerun"
         if self.metrics is not None:
             return "finished"
         return "failed" if self.failure else "no metrics"
 
     @property
     def crashed(self) -> bool:
-        """A started job without metrics.json."""
-        return self.started and self.metrics is None
+        """A started job without metrics.json (not counting one that a rerun replaced)."""
+        return self.started and self.metrics is None and not self.superseded
 
     @property
     def method(self) -> str:
@@ -180,13 +183,17 @@ def collect(dirs: list[str | Path]) -> list[Run]:
     """Every run under the given run / multirun folders, plus expected jobs that never started.
 
     A job expected by one multirun but found in another given folder (a rerun of the jobs a
-    killed sweep left) counts as started.
+    killed sweep left) counts as started; a job without metrics.json and without an error of its
+    own whose overrides another given run repeats (with a result or an error) is "superseded".
     """
     dirs = [Path(d) for d in dirs]
     for d in dirs:
         if not d.is_dir():
             raise UserInputError(f"segs.report: {d} is not a folder")
     runs = [load_run(p) for d in dirs for p in find_run_dirs(d)]
+    for r in runs:  # a job killed with its sweep (no error of its own) and run again elsewhere
+        r.superseded = r.metrics is None and not r.failure and any(
+            o is not r and _same(o.overrides, r.overrides) and (o.metrics is not None or o.failure) for o in runs)
     for d in dirs:
         for job in expected_jobs(d) or []:
             if not any(_same(job, r.overrides) for r in runs):

@@ -63,7 +63,7 @@ def runs_table(runs: list[Run], root: Path | None = None) -> str:
     header = ["run", "method", "overrides", "status"] + [c[0] for c in COLUMNS]
     rows = []
     for r in runs:
-        row = [_run_name(r, root), r.method, _cell(variant(r, common)), r.status if not r.failure else f"failed: {r.failure}"]
+        row = [_run_name(r, root), r.method, _cell(variant(r, common)), r.status if not r.failure else f"failed: {r.failure[:80]}"]
         row = [_cell(c) for c in row]
         row += [fmt(r.metric(key), spec, scale) for _, key, spec, scale in COLUMNS]
         rows.append(row)
@@ -120,6 +120,7 @@ def failed(run: Run, min_tracked: float, max_ate_m: float) -> bool:
 
 def stress_groups(runs: list[Run]) -> dict[str, dict[str, list[Run]]]:
     """kind -> series -> runs sorted by level; unstressed / level-0 runs join every kind at 0."""
+    runs = [r for r in runs if not r.superseded]
     kinds = sorted({r.stress[0] for r in runs if r.stress[0] and r.stress[1] > 0})
     out: dict[str, dict[str, list[Run]]] = {}
     for kind in kinds:
@@ -171,6 +172,8 @@ def crash_summary(runs: list[Run]) -> str:
     missing = [r for r in runs if not r.started]
     text = (f"{len(runs)} jobs: {sum(r.status == 'finished' for r in runs)} finished, "
             f"{len(crashed)} crashed or unfinished (no metrics.json), {len(missing)} never started.")  # fmt: skip
+    if any(r.superseded for r in runs):
+        text += f" {sum(r.superseded for r in runs)} unfinished jobs were run again (superseded)."
     lines = [f"- `{r.path}`: {r.failure or 'no metrics.json (crashed, killed or still running)'}" for r in crashed]
     lines += [f"- not started: `{' '.join(r.overrides)}`" for r in missing]
     return "\n".join([text] + lines)
