@@ -175,9 +175,13 @@ def _stability_row(axes, kind: str, series: dict[str, list[Run]], colours: dict,
                        s=50, zorder=4)  # fmt: skip
     levels = sorted({r.stress[1] for rs in series.values() for r in rs})
     pad = 0.05 * (levels[-1] - levels[0] or 1.0)
-    for ax, (_, label, _) in zip(axes, STABILITY_PANELS):
+    for ax, (key, label, _) in zip(axes, STABILITY_PANELS):
         ax.set(xlabel=f"{kind} level", ylabel=label, xlim=(levels[0] - pad, levels[-1] + pad))
-        ax.set_xticks(levels)
+        ax.set_xticks(levels, [f"{lv:g}" for lv in levels], fontsize=7)
+        if key == "tracked_fraction":
+            ax.set_ylim(-5, 105)
+        elif key == "ate_rmse_m":
+            ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
 
 
@@ -198,6 +202,6 @@ def stability_chart(runs: list[Run], path: Path, min_tracked: float = 0.9, max_a
                 Line2D([], [], ls="", marker="x", color="red", label="crash / no metrics.json")]  # fmt: skip
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=7)
     _header(fig, "Stability under stress", runs)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.tight_layout(rect=(0, 0.03, 1, 0.97))
     fig.savefig(path, dpi=110)
     return path
