@@ -52,7 +52,7 @@ def _run_name(run: Run, root: Path | None) -> str:
     if not run.started:
         return "(not started)"
     try:
-        return str(run.path.relative_to(root)) if root else run.path.name
+        return str(run.path.resolve().relative_to(root.resolve())) if root else run.path.name
     except ValueError:
         return run.path.name
 
