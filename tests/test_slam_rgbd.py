@@ -54,7 +54,6 @@ def test_map_update_contract(rgbd_loop):
     assert up.colors.dtype == np.float32 and up.colors.min() >= 0 and up.colors.max() <= 1
     assert set(np.unique(up.point_kf).tolist()) <= set(up.new_keyframes)
     # points lie on the room's surfaces: depth-consistent in the keyframe that created them
-    T0 = seq.gt_poses[0]
     some = np.flatnonzero(up.point_kf == up.new_keyframes[0])[:200]
     kf0 = fe.map.culled.get(up.new_keyframes[0]) or fe.map.kfs[up.new_keyframes[0]]
     frame = seq[kf0.frame_index]
@@ -63,7 +62,6 @@ def test_map_update_contract(rgbd_loop):
     u = np.clip(np.rint(K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2]).astype(int), 0, seq.camera.width - 1)
     v = np.clip(np.rint(K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]).astype(int), 0, seq.camera.height - 1)
     assert np.median(np.abs(frame.depth[v, u] - pc[:, 2])) < 0.02
-    del T0
 
 
 def test_loop_detected_and_corrections_reported(rgbd_loop):

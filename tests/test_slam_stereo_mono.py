@@ -1,7 +1,6 @@
 """ORB frontend on synthetic stereo and monocular sequences: loop closing and scale-aligned ATE."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from segs.data.synthetic import SyntheticSequence

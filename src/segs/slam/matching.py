@@ -81,18 +81,16 @@ def search_projection(frame, uv: np.ndarray, desc: np.ndarray, level: np.ndarray
         ok &= (fur < 0) | (np.abs(ur[qi] - fur) <= radius[qi])
     qi, ki = qi[ok], ki[ok]
     d = hamming_pairs(desc, qi, frame.kp.desc, ki)
-    q, k, d1, d2, b = best_two(qi, ki, d)
-    lvl1 = frame.kp.octave[k]
+    q, k, d1, d2, _ = best_two(qi, ki, d)
+    # ORB-SLAM applies the ratio only when best and second are on the same level; here always
+    # (stricter), a missing second candidate passes
     ok = (d1 <= max_dist) & (d1 <= ratio * d2)
-    # ORB-SLAM applies the ratio only when best and second are on the same level; simpler and
-    # stricter here, except that a missing second match always passes.
     q, k, d1 = q[ok], k[ok], d1[ok]
     keep = unique_targets(q, k, d1)
     q, k = q[keep], k[keep]
     if angle is not None and len(q):
         keep = rotation_consistent(angle[q], frame.kp.angle[k])
         q, k = q[keep], k[keep]
-    del lvl1
     return q, k
 
 
@@ -129,8 +127,7 @@ def match_frame_to_kf(frame, kf, valid: np.ndarray, ratio: float = 0.75,
 
 
 def match_for_triangulation(kf1, kf2, F12: np.ndarray, sigma2: np.ndarray, ratio: float = 0.6,
-                            max_dist: int = TH_LOW, epi_chi2: float = 3.84,
-                            min_dist_epipole: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+                            max_dist: int = TH_LOW, epi_chi2: float = 3.84) -> tuple[np.ndarray, np.ndarray]:
     """Unmatched keypoints of kf1 vs kf2 satisfying the epipolar constraint.
 
     F12 [3,3]: x2^T F12 x1 = 0. Returns (idx1 [K], idx2 [K]).
