@@ -272,7 +272,7 @@ class LoopCloser:
         self.loops.append((kf.kf_id, loop.kf_id))
         self.groups = []
         sysm.emit_corrections(corrections)
-        sysm.emit_poses(list(m.kfs))
+        sysm.emit_poses(list(m.kfs) + list(m.culled))
         sysm.tracker.on_map_corrected()
 
     def _essential_edges(self, old, corrected, new_links) -> list[tuple[int, int, np.ndarray]]:

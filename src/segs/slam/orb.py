@@ -150,7 +150,7 @@ class OrbFrontend(Frontend):
                 self.run_global_ba(self.cfg.loop.global_ba_iterations)
         with self.map.lock:
             self.mapper.flush_recent()
-            self.emit_poses(list(self.map.kfs))
+            self.emit_poses(list(self.map.kfs) + list(self.map.culled))
         return self.poll()
 
     def trajectory(self) -> dict[int, np.ndarray]:
@@ -294,7 +294,7 @@ class OrbFrontend(Frontend):
             if a in corr:
                 corr[c.kf_id] = corr[a]
         self.emit_corrections(corr)
-        self.emit_poses(list(m.kfs))
+        self.emit_poses(list(m.kfs) + list(m.culled))
         self.tracker.on_map_corrected()
 
     # ------------------------------------------------------------------ output buffer
@@ -305,10 +305,16 @@ class OrbFrontend(Frontend):
             self._pending.poses[kf.kf_id] = kf.w2c.copy()
 
     def emit_poses(self, kf_ids: list[int]) -> None:
+        """Refreshed w2c of keyframes; culled ones (still trained by the mapper) are recomposed
+        from their parent (ORB-SLAM's Tcp)."""
         with self._out_lock:
             for k in kf_ids:
                 if k in self.map.kfs:
                     self._pending.poses[k] = self.map.kfs[k].w2c.copy()
+                elif k in self.map.culled:
+                    T = self.map.kf_pose(k)
+                    if T is not None:
+                        self._pending.poses[k] = T
 
     def emit_points(self, pids: np.ndarray) -> None:
         m = self.map
