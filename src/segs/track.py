@@ -74,7 +74,10 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
 
     traj = frontend.trajectory()
     idx, c2w = estimated_c2w(traj)
-    write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
+    if len(idx):
+        write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
+    else:  # nothing tracked: an empty trajectory file, ATE n/a
+        (out / "trajectory.txt").write_text("")
     kfs = frontend.keyframe_frames()
     with open(out / "keyframes.txt", "w") as f:
         f.write("# kf_id frame_index timestamp\n")
@@ -111,7 +114,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         f"{len(result.update.points)} map points\n"
         f"  ATE RMSE ({align}) {'n/a' if rmse is None else f'{rmse * 100:.2f} cm'}"
         f" over {ate_result['pairs']} frames\n"
-        f"  {metrics['tracking_fps']:.1f} frames/s in process() ({result.process_s:.1f} s), "
+        f"  {metrics['tracking_fps'] or 0:.1f} frames/s in process() ({result.process_s:.1f} s), "
         f"finish {result.finish_s:.1f} s\n"
         f"  trajectory.txt (TUM), keyframes.txt, tracking.json"
     )

@@ -26,7 +26,7 @@ class TrackingConfig:
     close_depth_factor: float = 40.0  # "close" points: depth < factor * baseline (ORB-SLAM ThDepth)
     max_depth: float = 10.0  # depths beyond are unknown
     depth_edge_ratio: float = 0.05  # RGB-D: no depth where the 3x3 depth range exceeds this x depth
-    min_init_points: int = 500  # keypoints with depth to start an RGB-D / stereo map
+    min_init_points: int = 500  # keypoints with depth to start an RGB-D / stereo map (<= n_features/3)
     window_motion: float = 15.0  # projection radius from the last frame, mono (x scale)
     window_motion_stereo: float = 7.0  # idem, stereo / RGB-D
     local_map_th: float = 1.0  # local-map projection radius factor (x 2.5 or 4 x scale)

@@ -103,7 +103,8 @@ class Tracker:
     def _initialize(self, frame: SlamFrame) -> KeyFrame | None:
         if self.sys.sensor == "mono":
             return self._initialize_mono(frame)
-        if int((frame.depth > 0).sum()) < self.cfg.min_init_points:
+        need = min(self.cfg.min_init_points, self.sys.cfg.features.n_features // 3)
+        if int((frame.depth > 0).sum()) < need:
             frame.w2c = None
             return None
         w2c = self.last_good_w2c if self.last_good_w2c is not None else np.eye(4)
