@@ -1,0 +1,46 @@
+"""The tracking-only entry point `python -m segs.track` (same configs as segs.train)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from segs.config import compose
+from segs.errors import ConfigError
+from segs.track import lost_ranges, run
+
+BASE = ["+experiment=synthetic", "data.n_frames=12", "data.width=320", "data.height=240",
+        "data.trajectory=orbit", "data.speed=0.2"]
+
+
+def test_track_writes_trajectory_keyframes_and_metrics(tmp_path):
+    cfg = compose(BASE + ["data.blank_frames=[[8,10]]"], output_dir=str(tmp_path))
+    m = run(cfg, progress=False)
+    assert (tmp_path / "trajectory.txt").exists() and (tmp_path / "keyframes.txt").exists()
+    saved = json.loads((tmp_path / "tracking.json").read_text())
+    assert saved["frames"] == 12 and saved["sensor"] == "rgbd"
+    assert saved["lost_ranges"] == [[8, 9]] and saved["frames_tracked"] == 10
+    assert saved["tracked_fraction"] == pytest.approx(10 / 12)
+    assert saved["ate"]["align"] == "se3" and saved["ate_rmse_m"] < 0.01
+    assert saved["tracking_fps"] > 0 and saved["keyframes"] >= 1
+    lines = [ln for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if ln.strip()]
+    assert len(lines) == 10 and len(lines[0].split()) == 8
+    assert m["ate_rmse_m"] == saved["ate_rmse_m"]
+
+
+def test_track_rejects_unknown_slam_keys_as_user_error(tmp_path):
+    cfg = compose(BASE + ["+slam.tracking.no_such_key=1"], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match="no_such_key"):
+        run(cfg, progress=False)
+    out = subprocess.run([sys.executable, "-m", "segs.track", *BASE, "+slam.tracking.no_such_key=1",
+                          f"hydra.run.dir={tmp_path / 'cli'}"], capture_output=True, text=True)
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines()[-1].startswith("error: slam.tracking: unknown key")
+    assert "Traceback" not in out.stderr
+
+
+def test_lost_ranges():
+    assert lost_ranges([]) == []
+    assert lost_ranges([3, 4, 5, 9]) == [[3, 5], [9, 9]]
