@@ -1,11 +1,12 @@
 """Mapping iteration time on the bundled real TUM sample, per model, with a breakdown.
 
 Builds the map of every sample keyframe from known poses (320x240), warms each model up with
-`--warmup` training iterations (densification on, so the Gaussian count is realistic), then
+`--warmup` training iterations of a `--schedule`-step run (densification on, so the Gaussian
+count is what that point of a real run has), then
 times `--iters` iterations: decode, rasterize (forward), loss, backward (raster + decoders +
 loss), optimizer step. Prints one table (medians) and writes outputs/bench/train_step.json.
 
-    python bench/train_step.py --warmup 300 --iters 30
+    python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
 """
 from __future__ import annotations
 
@@ -69,9 +70,9 @@ def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
     return t
 
 
-def bench(model: str, warmup: int, iters: int, backend: str) -> dict:
+def bench(model: str, schedule: int, warmup: int, iters: int, backend: str) -> dict:
     torch.manual_seed(0)
-    module = build(model, warmup + iters, backend)
+    module = build(model, schedule, backend)
     opt = make_adam(module.model.param_groups())
     for s in range(warmup):
         iteration(module, opt, s, False)
@@ -83,14 +84,16 @@ def bench(model: str, warmup: int, iters: int, backend: str) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--warmup", type=int, default=300)
+    p.add_argument("--schedule", type=int, default=3000, help="trainer.max_steps of the run being imitated")
+    p.add_argument("--warmup", type=int, default=1500)
     p.add_argument("--iters", type=int, default=30)
     p.add_argument("--backend", default="cpu")
     p.add_argument("--models", nargs="+", default=["segs", "plain_3dgs"])
     args = p.parse_args()
-    results = {m: bench(m, args.warmup, args.iters, args.backend) for m in args.models}
+    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend) for m in args.models}
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
-    print(f"{cpu}, {torch.get_num_threads()} threads, backend {args.backend}, 320x240, medians of {args.iters} iterations after {args.warmup}")
+    print(f"{cpu}, {torch.get_num_threads()} threads, backend {args.backend}, 320x240, medians of {args.iters} iterations "
+          f"after {args.warmup} of a {args.schedule}-step schedule")
     keys = ["decode", "raster_fwd", "loss", "backward", "step+stats", "total"]
     print(f"| model | Gaussians drawn | anchors | {' | '.join(k + ' ms' for k in keys)} | it/s |")
     print("|---|---|---|" + "---|" * (len(keys) + 1))
