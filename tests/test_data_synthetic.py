@@ -49,7 +49,7 @@ def test_camera_intrinsics_follow_fov():
     assert (seq.camera.cx, seq.camera.cy) == (159.5, 119.5)
 
 
-@pytest.mark.parametrize("trajectory", ["loop", "line", "orbit"])
+@pytest.mark.parametrize("trajectory", ["loop", "line", "orbit", "pan"])
 def test_poses_are_rigid_and_inside_free_space(trajectory):
     seq = SyntheticSequence(sensor="rgbd", n_frames=40, width=40, height=30, trajectory=trajectory)
     rot = seq.gt_poses[:, :3, :3]
@@ -140,6 +140,9 @@ def test_loop_closes_and_speed_scales_motion():
     for kind in ("loop", "line", "orbit"):
         slow, fast = trajectory_poses(kind, 61, 1.0), trajectory_poses(kind, 61, 2.0)
         assert step(fast) == pytest.approx(2 * step(slow), rel=0.05)
+    pan = trajectory_poses("pan", 61, 1.0)  # rotation in place, once around
+    np.testing.assert_allclose(pan[:, :3, 3], np.broadcast_to(pan[0, :3, 3], (61, 3)), atol=1e-12)
+    np.testing.assert_allclose(pan[0], pan[-1], atol=1e-9)
     line = trajectory_poses("line", 61, 2.0)
     np.testing.assert_allclose(line[0], line[-1], atol=1e-9)
 

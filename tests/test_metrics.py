@@ -84,3 +84,17 @@ def test_ate_sim3_removes_scale_and_reports_missing_ground_truth():
     r = ate(ts, scaled, gt, "sim3")
     assert r["rmse"] < 1e-9 and r["scale"] == pytest.approx(2.0, rel=1e-6)
     assert ate(ts, scaled, None)["rmse"] is None
+
+
+def test_ate_of_a_rotation_in_place_falls_back_to_origin_alignment():
+    # every camera centre on one point: Umeyama is degenerate; the first poses are aligned instead
+    n = 12
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    for i, a in enumerate(np.linspace(0, 2 * math.pi, n)):
+        gt[i, :2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
+    ts = np.arange(n) / 30.0
+    est = {i: np.linalg.inv(gt[i]) for i in range(n)}
+    est[5] = np.linalg.inv(gt[5] @ np.block([[np.eye(3), np.array([[0.02], [0], [0]])], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    r = ate(ts, est, gt, "se3")
+    assert r["align"] == "origin"
+    assert r["rmse"] == pytest.approx(0.02 / math.sqrt(n), rel=1e-6)

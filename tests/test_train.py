@@ -78,3 +78,18 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     assert seen["step"] == 20 and seen["anchors"] == n_anchors and seen["views"] > 0
     assert trainer2.global_step == 30
     assert bridge.cursor == state["callbacks"]["SlamBridge"]["cursor"] or bridge.finished
+
+
+def test_afme_beats_no_afme_on_test_views_under_an_exposure_change(tiny_cfg, tmp_path):
+    """The paper's AfME claim on a sequence built to isolate it: the camera turns in place (every
+    surface point keeps one viewing ray, so view-dependent colour cannot explain the frame's
+    exposure) while gain and white balance change smoothly over +-1 stop. AfME sees the test
+    frame's pose only. Measured (seeds 0 / 1, 1000 steps): 25.6 / 24.6 dB against 20.4 / 21.8 dB."""
+    psnr = {}
+    for kind in ("linear", "none"):
+        cfg = tiny_cfg("trainer.max_steps=1000", "data.n_frames=24", "data.exposure_change=1.0", "data.texture=poor",
+                       "data.trajectory=pan", "slam.keyframe_every=1", "slam.point_source=grid", "eval.save_renders=0",
+                       f"model.appearance.kind={kind}", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.progress=false",
+                       out=tmp_path / kind)  # fmt: skip
+        psnr[kind] = run(cfg)["psnr"]
+    assert psnr["linear"] > psnr["none"] + 1.0, psnr

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 from evo.core import metrics, sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 
@@ -48,7 +49,9 @@ def ate(
 
     timestamps: [N] seconds of every frame of the sequence; trajectory: frame index -> w2c [4,4]
     of the tracked frames; gt_c2w: [N,4,4] ground truth (NaN rows where unknown) or None.
-    align: "se3" (RGB-D, stereo), "sim3" (monocular: scale corrected) or "none".
+    align: "se3" (RGB-D, stereo), "sim3" (monocular: scale corrected) or "none". When the
+    camera centres are degenerate for Umeyama (all on one point, e.g. a pan in place) the first
+    poses are aligned instead and "align" says "origin".
     Returns {"rmse", "mean", "median", "max", "pairs", "align", "scale"}, or {"rmse": None, ...}
     with a "reason" when it cannot be computed (no ground truth, fewer than 3 pairs).
     """
@@ -68,9 +71,13 @@ def ate(
     if ref.num_poses < 3:
         return {**empty, "reason": "fewer than 3 associated poses"}
     traj = copy.deepcopy(traj)
-    scale = 1.0
+    scale, used = 1.0, align
     if align != "none":
-        _, _, scale = traj.align(ref, correct_scale=(align == "sim3"))
+        try:
+            _, _, scale = traj.align(ref, correct_scale=(align == "sim3"))
+        except GeometryException:  # camera centres on a point or a line (rotation in place)
+            traj.align_origin(ref)
+            used = "origin"
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, traj))
     s = ape.get_all_statistics()
@@ -80,6 +87,6 @@ def ate(
         "median": float(s["median"]),
         "max": float(s["max"]),
         "pairs": int(ref.num_poses),
-        "align": align,
+        "align": used,
         "scale": float(scale),
     }

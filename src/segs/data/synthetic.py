@@ -10,8 +10,10 @@ Knobs:
   1.4 m height, height/yaw/pitch/roll varying periodically, looking 25-45 degrees outward from
   the direction of travel), ``"line"`` (a sideways translation along x looking at the +y wall,
   drifting 0.3 m forward, small rotations; ping-pong over a 3 m segment) or ``"orbit"``
-  (a circle of radius 1.3 m looking at the room centre).
-- ``speed``: for ``loop`` and ``orbit`` the number of laps over the whole sequence; for ``line``
+  (a circle of radius 1.3 m looking at the room centre) or ``"pan"`` (rotation in place: the
+  camera stays at the room centre, 1.4 m high, and turns its yaw once around per lap with a
+  small pitch nod; every surface point is seen along one viewing ray whatever the frame).
+- ``speed``: for ``loop``, ``orbit`` and ``pan`` the number of laps over the whole sequence; for ``line``
   the number of times the 3 m segment is travelled (back and forth). The frame angle is
   ``2 pi speed i / (n_frames - 1)``: speed 2 = twice the motion between consecutive frames for a
   fixed ``n_frames``. The last frame is back at the first pose whenever ``speed`` is an integer
@@ -39,7 +41,7 @@ from segs.data.frame import SENSORS, Camera, Frame, Sequence
 from segs.data.synthetic_scene import TEXTURES, get_scene
 from segs.errors import ConfigError
 
-TRAJECTORIES = ("loop", "line", "orbit")
+TRAJECTORIES = ("loop", "line", "orbit", "pan")
 FPS = 30.0
 _CACHE_FRAMES = 32
 
@@ -83,9 +85,14 @@ def _orbit_pose(theta: float) -> np.ndarray:
     return look_pose(pos, np.array([0.0, 0.0, 0.8]) - pos)
 
 
+def _pan_pose(theta: float) -> np.ndarray:
+    pitch = np.radians(-5.0 + 4.0 * np.sin(2 * theta))
+    return look_pose(np.array([0.0, 0.0, 1.4]), _direction(theta, pitch))
+
+
 def trajectory_poses(kind: str, n_frames: int, speed: float = 1.0) -> np.ndarray:
     """Camera-to-world poses [n_frames,4,4] float64 of a named trajectory (see module doc)."""
-    make = {"loop": _loop_pose, "line": _line_pose, "orbit": _orbit_pose}[kind]
+    make = {"loop": _loop_pose, "line": _line_pose, "orbit": _orbit_pose, "pan": _pan_pose}[kind]
     thetas = 2 * np.pi * speed * np.arange(n_frames) / max(n_frames - 1, 1)
     if kind == "line":
         thetas = thetas / 2  # one segment traversal per unit of speed

@@ -47,7 +47,7 @@ class SegsModel(SceneModel):
         app = {"kind": "linear", "dim": 32, "hidden": 32, **dict(appearance or {})}
         self.fpr = {"enabled": True, "scales": 3, "mode": "high", "hp_ratio": 0.4, "lp_ratio": 0.1, "from_step": 5000, "until_step": 15000, **dict(fpr or {})}
         self.loss_w = {"lambda_dssim": 0.2, "lambda_vol": 0.01, "lambda_hf": 0.01, **dict(loss or {})}
-        self.dcfg = {"stats_from": 500, "grow_from": 1500, "until": 25000, "interval": 100, **dict(densify or {})}
+        self.dcfg = {"stats_from": 500, "grow_from": 1500, "until": 25000, "interval": 100, "scale_interval": False, **dict(densify or {})}
         self.lr = {**_LR_DEFAULTS, **dict(lr or {})}
         self._validate(k, feature_dim, hidden, voxel_size, max_anchors, app, reference_steps, total_steps)
         self.scale = total_steps / reference_steps
@@ -55,7 +55,7 @@ class SegsModel(SceneModel):
         a_dim = 0 if app["kind"] == "none" else int(app["dim"])
         self.field = AnchorField(k, feature_dim, hidden, a_dim, use_distance, frustum_margin)
         self.appearance = AppearanceEncoder(app["kind"], int(app["dim"]), int(app["hidden"]), int(app.get("max_views", 4096)))
-        grow = {k_: v for k_, v in self.dcfg.items() if k_ not in ("stats_from", "grow_from", "until", "interval")}
+        grow = {k_: v for k_, v in self.dcfg.items() if k_ not in ("stats_from", "grow_from", "until", "interval", "scale_interval")}
         self.densifier = AnchorDensifier(k, voxel_size, max_anchors=max_anchors, **grow)
         if budget_mb is not None:
             _check("budget_mb", budget_mb > 0, budget_mb, "> 0 (MB) or null")
@@ -92,6 +92,12 @@ class SegsModel(SceneModel):
     def floats_per_anchor(self) -> int:
         """Stored floats per anchor: position, feature, k offsets, 6 log-scales."""
         return 3 + self.field.feature_dim + 3 * self.field.k + 6
+
+    def _interval(self) -> int:
+        """Steps between grow / prune rounds: the reference's 100 views of statistics, or scaled."""
+        if self.dcfg["scale_interval"]:
+            return max(self._at(self.dcfg["interval"]), 1)
+        return int(self.dcfg["interval"])
 
     def _at(self, step_ref: float) -> int:
         """A reference-run iteration number in this run's steps."""
@@ -192,7 +198,7 @@ class SegsModel(SceneModel):
             self.densifier.record(decoded.aux["info"], render.means2d.grad, render.radii, w, h)
 
     def maintain(self, step, optimizer) -> dict[str, float]:
-        interval = max(self._at(self.dcfg["interval"]), 1)
+        interval = self._interval()
         if not (self._at(self.dcfg["grow_from"]) < step < self._at(self.dcfg["until"])) or step % interval:
             return {}
         out, self.kf_tags = self.densifier.adjust(self.field, self.kf_tags, interval, optimizer)
