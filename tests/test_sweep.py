@@ -66,8 +66,8 @@ def test_stability_sweep_covers_every_stress_kind_with_rising_levels():
         check(kind.split(":")[1], float(level.split(":")[1]), cfg.camera.sensor)  # all valid for the experiment
 
 
-def _multirun(tmp_path: Path, *overrides: str, launcher: str) -> subprocess.CompletedProcess:
-    args = [sys.executable, "-m", "segs.train", "-m", *TINY_SWEEP, *overrides, f"hydra/launcher={launcher}",
+def _multirun(tmp_path: Path, *overrides: str, launcher: str, base: list[str] = TINY_SWEEP) -> subprocess.CompletedProcess:
+    args = [sys.executable, "-m", "segs.train", "-m", *base, *overrides, f"hydra/launcher={launcher}",
             f"hydra.sweep.dir={tmp_path / 'sweep'}"]  # fmt: skip
     return subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=240)
 
@@ -100,3 +100,20 @@ def test_a_failing_job_does_not_hide_the_other_and_is_recorded(tmp_path):
     assert report.returncode == 0, report.stderr
     md = (sweep / "report.md").read_text()
     assert "2 jobs: 1 finished, 1 crashed" in md and "Precision 'bogus' is invalid" in md
+
+
+def test_a_job_whose_tracking_fails_is_a_result_not_a_crash(tmp_path):
+    # every frame blank: the ORB frontend tracks nothing. A single run exits 2 with one line;
+    # inside a sweep the job returns, metrics.json says "tracking_failed" and the sweep goes on.
+    blank = ["slam=orb", "data.blank_frames=[[0,14]]"]
+    tiny_orb = [o for o in TINY_SWEEP if not o.startswith("slam")]
+    single = subprocess.run([sys.executable, "-m", "segs.train", *tiny_orb, *blank, f"hydra.run.dir={tmp_path / 'one'}"],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=240)  # fmt: skip
+    assert single.returncode == 2 and single.stderr.strip().splitlines()[-1].startswith("error: data: no training keyframe")
+    assert json.loads((tmp_path / "one" / "metrics.json").read_text())["status"] == "tracking_failed"
+    proc = _multirun(tmp_path, *blank, launcher="basic", base=tiny_orb)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "sweep" / "0" / "metrics.json").read_text())
+    assert m["status"] == "tracking_failed" and m["tracked_fraction"] == 0 and m["psnr"] is None
+    md = (tmp_path / "sweep" / "report.md").read_text()
+    assert "1 jobs: 0 finished, 1 tracking failed" in md and "0 crashed" in md

@@ -126,3 +126,29 @@ def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict) -> dic
         metrics["ate_note"] = f"{len(lost)} untracked frames have no pose and are excluded from ATE and test views"
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
+
+
+def write_tracking_failed(out: Path, err, frames_tracked: int, wall_s: float) -> dict:
+    """metrics.json of a run whose frontend tracked nothing mappable (status "tracking_failed"):
+    the tracking numbers it has, no image or model metric. err: the TrackingFailed raised."""
+    out.mkdir(parents=True, exist_ok=True)
+    none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "mapping_time_s", "iterations_per_s", "tracking_fps"))
+    metrics = {
+        **none,
+        "status": "tracking_failed",
+        "reason": str(err),
+        "test_views": 0,
+        "iterations": 0,
+        "wall_time_s": wall_s,
+        "frames": err.frames,
+        "frames_tracked": frames_tracked,
+        "tracked_fraction": frames_tracked / max(err.frames, 1),
+        "lost_frames": err.lost,
+        "training_views": 0,
+        "anchors": 0,
+        "gaussians": 0,
+        "peak_rss_mb": peak_rss_mb(),
+    }
+    write_json_atomic(out / "metrics.json", metrics)
+    return metrics
+

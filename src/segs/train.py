@@ -11,6 +11,8 @@ import time
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 import lightning as L
 import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
@@ -19,8 +21,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import GracefulInterrupt, SlamBridge, save_atomic
 from segs.config import instantiate, make_sequence, user_errors_exit, validate
-from segs.errors import DataError
-from segs.evaluation import evaluate
+from segs.errors import DataError, TrackingFailed
+from segs.evaluation import evaluate, write_tracking_failed
 from segs.modules.mapping import MappingModule
 
 log = logging.getLogger("segs.train")
@@ -66,6 +68,9 @@ def run(cfg: DictConfig) -> dict:
     try:
         # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
         trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
+    except TrackingFailed as err:  # the method's result on this input: recorded, then reported
+        write_tracking_failed(out, err, len(frontend.trajectory()), time.perf_counter() - t_start)
+        raise
     except SIGTERMException:  # Lightning's own SIGTERM handling stopped the loop (exit code 0 otherwise)
         if stopper is not None and stopper.checkpoint is None:
             stopper.stop(trainer)
@@ -106,7 +111,14 @@ def _print_summary(out: Path, m: dict) -> None:
 def main(cfg: DictConfig) -> float | None:
     torch.set_num_threads(max(torch.get_num_threads(), 1))
     with user_errors_exit():
-        metrics = run(cfg)
+        try:
+            metrics = run(cfg)
+        except TrackingFailed as err:
+            if HydraConfig.get().mode != RunMode.MULTIRUN:
+                raise
+            # inside a sweep a tracking failure is a result (metrics.json says so), not a crash
+            log.warning("tracking failed: %s", str(err).splitlines()[0])
+            return None
     return metrics.get("psnr")
 
 

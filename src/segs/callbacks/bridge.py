@@ -16,7 +16,7 @@ import torch
 from tqdm import tqdm
 
 from segs.data.frame import Frame, Sequence
-from segs.errors import DataError
+from segs.errors import TrackingFailed
 from segs.modules.keyframes import Keyframe, to_uint8
 from segs.slam.base import Frontend, MapUpdate
 
@@ -69,9 +69,10 @@ class SlamBridge(L.Callback):
             steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
             self.frames_per_step = (len(self.sequence) - self.cursor) / steps
         if len(pl_module.store) == 0:
-            raise DataError(
+            lost = len(self.frontend.lost_frames())
+            raise TrackingFailed(
                 f"data: no training keyframe in the {len(self.sequence)} frames of {getattr(self.sequence, 'name', 'the sequence')} "
-                f"({len(self.frontend.lost_frames())} frames could not be tracked); nothing to map"
+                f"({lost} frames could not be tracked); nothing to map", frames=len(self.sequence), lost=lost
             )
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:

@@ -175,7 +175,9 @@ class PlainGaussians(SceneModel):
     def maintain(self, step, optimizer) -> dict[str, float]:
         d = self.densify_cfg
         start, until = self._at(d.get("from_step", 500)), self._at(d.get("until_step", 15000))
-        interval, reset = self._at(d.get("interval", 100)), self._at(d.get("opacity_reset_interval", 3000))
+        reset = self._at(d.get("opacity_reset_interval", 3000))
+        # as SEGS's growth: densify every `interval` steps (statistics of ~100 views) unless scaled
+        interval = self._at(d.get("interval", 100)) if d.get("scale_interval", False) else int(d.get("interval", 100))
         out: dict[str, float] = {}
         if start <= step < until and step % interval == 0 and len(self.gs):
             out = self._densify_and_prune(step > reset, optimizer)

@@ -40,13 +40,14 @@ class Run:
 
     @property
     def status(self) -> str:
-        """finished | failed (error recorded) | no metrics (crashed or still running) | not started."""
+        """finished | tracking_failed (metrics.json says the frontend tracked nothing mappable) |
+        failed (error recorded) | no metrics (crashed or still running) | not started."""
         if not self.started:
             return "not started"
         if self.superseded:
             return "superseded by a rerun"
         if self.metrics is not None:
-            return "finished"
+            return str(self.metrics.get("status", "finished"))
         return "failed" if self.failure else "no metrics"
 
     @property

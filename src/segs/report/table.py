@@ -170,8 +170,10 @@ def crash_summary(runs: list[Run]) -> str:
     """Counts of finished / crashed / never started jobs, and the crashed folders with their error."""
     crashed = [r for r in runs if r.crashed]
     missing = [r for r in runs if not r.started]
+    lost = sum(r.status == "tracking_failed" for r in runs)
     text = (f"{len(runs)} jobs: {sum(r.status == 'finished' for r in runs)} finished, "
-            f"{len(crashed)} crashed or unfinished (no metrics.json), {len(missing)} never started.")  # fmt: skip
+            + (f"{lost} tracking failed (no keyframe to map; recorded in metrics.json), " if lost else "")
+            + f"{len(crashed)} crashed or unfinished (no metrics.json), {len(missing)} never started.")  # fmt: skip
     if any(r.superseded for r in runs):
         text += f" {sum(r.superseded for r in runs)} unfinished jobs were run again (superseded)."
     lines = [f"- `{r.path}`: {r.failure or 'no metrics.json (crashed, killed or still running)'}" for r in crashed]
