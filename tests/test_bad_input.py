@@ -1,7 +1,9 @@
 """The bad-input catalogue (docs/reliability.md): one line naming the file or key, exit 2,
-no traceback, and no metrics.json (nothing that looks like a finished result)."""
+no traceback, and no metrics.json (nothing that looks like a finished result); a frontend that
+maps nothing leaves a metrics.json with status "tracking_failed" and no image metric."""
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -122,3 +124,18 @@ def test_camera_the_dataset_cannot_provide(tmp_path, capsys):
                                           ("trainer.max_steps=-5", "trainer.max_steps")])  # fmt: skip
 def test_out_of_range_values(tmp_path, capsys, override, key):
     assert key in _fails(tmp_path, capsys, override)
+
+
+def test_images_too_small_for_any_map_point(tmp_path, capsys):
+    # 80x60: ORB finds no keypoint, so the keyframes carry no 3D point. Exit 2 with one line, and
+    # a metrics.json that says so (status tracking_failed, no image metric), never a "finished" run
+    out = tmp_path / "run"
+    cfg = compose([o for o in FAST if not o.startswith("data.downscale")] + ["data.downscale=8"], output_dir=str(out))
+    with pytest.raises(SystemExit) as exc:
+        with user_errors_exit():
+            run(cfg)
+    assert exc.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith("error: data: the frontend gave no 3D point"), err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "tracking_failed" and m["psnr"] is None and m["gaussians"] == 0

@@ -74,6 +74,12 @@ class SlamBridge(L.Callback):
                 f"data: no training keyframe in the {len(self.sequence)} frames of {getattr(self.sequence, 'name', 'the sequence')} "
                 f"({lost} frames could not be tracked); nothing to map", frames=len(self.sequence), lost=lost
             )
+        if pl_module.model.counts()["gaussians"] == 0:  # keyframes, but not one 3D point (tiny or blank images)
+            raise TrackingFailed(
+                f"data: the frontend gave no 3D point in {len(pl_module.store)} keyframes of "
+                f"{getattr(self.sequence, 'name', 'the sequence')} (image too small or without texture?); nothing to map",
+                frames=len(self.sequence), lost=len(self.frontend.lost_frames()),
+            )
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self.credit += self.frames_per_step
