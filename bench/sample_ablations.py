@@ -57,7 +57,7 @@ def table(results: dict[str, list[dict]], steps: int, seeds: list[int], extra: l
         f"Measured {datetime.date.today()} on {cpu} (2 cores, no GPU), `python bench/sample_ablations.py --steps {steps} "
         f"--seeds {' '.join(map(str, seeds))}{' --extra ' + ' '.join(extra) if extra else ''}`: known (ground-truth) poses, "
         f"{steps} iterations at 320x240, {len(seeds)} seed(s) each (mean ± std over seeds), "
-        f"{sorted({r['test_views'] for runs in results.values() for r in runs})} test views (every 8th frame held out, "
+        f"{'/'.join(map(str, sorted({r['test_views'] for runs in results.values() for r in runs})))} test views (every 8th frame held out, "
         "plus the frames that did not become keyframes). Paper column: TUM RGB-D PSNR of Table 5 (fr1/desk, fr2/xyz, fr3/office, 30k iterations, GPU).",
         "",
         "| variant | test PSNR | test SSIM | anchors | Gaussians | MB | wall time (s) | paper TUM PSNR |",
