@@ -36,9 +36,8 @@ def _copy(tmp_path: Path, n: int = 12) -> Path:
     return root
 
 
-def _fails(tmp_path, capsys, *overrides: str) -> str:
-    out = tmp_path / "run"
-    cfg = compose(FAST + list(overrides), output_dir=str(out))
+def _exits_2_with_one_line(cfg, capsys) -> str:
+    """Run cfg as the entry point does; it must exit 2 with one 'error: ' line and no traceback."""
     with pytest.raises(SystemExit) as exc:
         with user_errors_exit():
             run(cfg)
@@ -46,8 +45,14 @@ def _fails(tmp_path, capsys, *overrides: str) -> str:
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and err[0].startswith("error: "), err
     assert "Traceback" not in err[0]
-    assert not (out / "metrics.json").exists()
     return err[0]
+
+
+def _fails(tmp_path, capsys, *overrides: str) -> str:
+    out = tmp_path / "run"
+    msg = _exits_2_with_one_line(compose(FAST + list(overrides), output_dir=str(out)), capsys)
+    assert not (out / "metrics.json").exists()
+    return msg
 
 
 def _index_line(root: Path, name: str, i: int) -> tuple[int, list[str]]:
@@ -131,11 +136,6 @@ def test_images_too_small_for_any_map_point(tmp_path, capsys):
     # a metrics.json that says so (status tracking_failed, no image metric), never a "finished" run
     out = tmp_path / "run"
     cfg = compose([o for o in FAST if not o.startswith("data.downscale")] + ["data.downscale=8"], output_dir=str(out))
-    with pytest.raises(SystemExit) as exc:
-        with user_errors_exit():
-            run(cfg)
-    assert exc.value.code == 2
-    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert len(err) == 1 and err[0].startswith("error: data: the frontend gave no 3D point"), err
+    assert _exits_2_with_one_line(cfg, capsys).startswith("error: data: the frontend gave no 3D point")
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "tracking_failed" and m["psnr"] is None and m["gaussians"] == 0

@@ -151,4 +151,3 @@ def write_tracking_failed(out: Path, err, frames_tracked: int, wall_s: float) ->
     }
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
-

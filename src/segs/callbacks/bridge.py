@@ -68,18 +68,14 @@ class SlamBridge(L.Callback):
         if self.frames_per_step is None:
             steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
             self.frames_per_step = (len(self.sequence) - self.cursor) / steps
+        name, lost = getattr(self.sequence, "name", "the sequence"), len(self.frontend.lost_frames())
         if len(pl_module.store) == 0:
-            lost = len(self.frontend.lost_frames())
-            raise TrackingFailed(
-                f"data: no training keyframe in the {len(self.sequence)} frames of {getattr(self.sequence, 'name', 'the sequence')} "
-                f"({lost} frames could not be tracked); nothing to map", frames=len(self.sequence), lost=lost
-            )
-        if pl_module.model.counts()["gaussians"] == 0:  # keyframes, but not one 3D point (tiny or blank images)
-            raise TrackingFailed(
-                f"data: the frontend gave no 3D point in {len(pl_module.store)} keyframes of "
-                f"{getattr(self.sequence, 'name', 'the sequence')} (image too small or without texture?); nothing to map",
-                frames=len(self.sequence), lost=len(self.frontend.lost_frames()),
-            )
+            reason = f"no training keyframe in the {len(self.sequence)} frames of {name} ({lost} frames could not be tracked)"
+        elif pl_module.model.counts()["gaussians"] == 0:  # keyframes, but not one 3D point (tiny or blank images)
+            reason = f"the frontend gave no 3D point in {len(pl_module.store)} keyframes of {name} (image too small or without texture?)"
+        else:
+            return
+        raise TrackingFailed(f"data: {reason}; nothing to map", frames=len(self.sequence), lost=lost)
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self.credit += self.frames_per_step
