@@ -49,7 +49,7 @@ def test_camera_intrinsics_follow_fov():
     assert (seq.camera.cx, seq.camera.cy) == (159.5, 119.5)
 
 
-@pytest.mark.parametrize("trajectory", ["loop", "line", "orbit", "pan"])
+@pytest.mark.parametrize("trajectory", ["loop", "line", "orbit", "pan", "forward"])
 def test_poses_are_rigid_and_inside_free_space(trajectory):
     seq = SyntheticSequence(sensor="rgbd", n_frames=40, width=40, height=30, trajectory=trajectory)
     rot = seq.gt_poses[:, :3, :3]
@@ -147,6 +147,44 @@ def test_loop_closes_and_speed_scales_motion():
     np.testing.assert_allclose(line[0], line[-1], atol=1e-9)
 
 
+def test_forward_drives_down_the_corridor():
+    seq = SyntheticSequence(sensor="rgbd", n_frames=21, width=64, height=48, trajectory="forward", speed=1.0)
+    pos = seq.gt_poses[:, :3, 3]
+    steps = np.diff(pos, axis=0)
+    assert np.all(steps[:, 1] > 0)  # always forward (+y), weaving sideways
+    assert np.linalg.norm(steps, axis=1).sum() == pytest.approx(24.0, rel=0.02)  # 24 m per unit speed
+    assert np.all(seq.gt_poses[:, 1, 2] > 0.95)  # the optical axis looks down the corridor
+    assert np.ptp(pos[:, 0]) > 0.5
+    depths = np.concatenate([seq[i].depth.ravel() for i in (0, 10, 20)])
+    assert depths.min() < 3.0 and depths.max() > 30.0  # a street-like depth range
+    assert seq.name == "synthetic_forward_rich"
+    fast = trajectory_poses("forward", 21, 2.0)
+    np.testing.assert_allclose(np.diff(fast[:, :3, 3], axis=0)[:, 1], 2 * steps[:, 1], rtol=1e-9)
+    with pytest.raises(ConfigError, match="corridor ends"):
+        SyntheticSequence(trajectory="forward", speed=3.5)
+
+
+def test_corridor_reprojects_with_same_colour():
+    """Consecutive forward frames 0.4 m apart agree in colour (mip-mapped texture, exact depth)."""
+    seq = SyntheticSequence(sensor="rgbd", n_frames=61, trajectory="forward", speed=1.0)
+    fi, fj = seq[10], seq[11]
+    uj, vj, zj, inside = _reproject(fi, fj)
+    depth_j = _bilinear(fj.depth, uj, vj)
+    visible = inside & (np.abs(depth_j - zj) < 0.01 * zj)
+    assert visible.mean() > 0.5
+    err = np.abs(_bilinear(fj.rgb, uj, vj) - fi.rgb).mean(-1)[visible]
+    assert np.median(err) < 0.03
+
+
+def test_room_layout_is_unchanged_by_the_corridor():
+    from segs.data.synthetic_scene import get_scene
+    room = get_scene("rich", 0)
+    assert room.mip_levels == 1 and room.atlas.shape[1] == 4096 and not room._transposed.any()
+    corridor = get_scene("rich", 0, "corridor")
+    assert corridor.mip_levels > 1 and corridor._transposed.any()  # floor and ceiling lie down
+    assert corridor.atlas.nbytes < 30e6
+
+
 def test_texture_knob_controls_orb_features():
     orb = cv2.ORB_create(nfeatures=3000)
 
@@ -199,6 +237,7 @@ def test_render_speed():
 
 @pytest.mark.parametrize("kwargs", [dict(sensor="depth"), dict(trajectory="spiral"),
                                     dict(texture="wood"), dict(n_frames=0), dict(fov_deg=180),
+                                    dict(trajectory="forward", speed=-1.0),
                                     dict(sensor="stereo", baseline=0.0), dict(blank_frames=["x"]),
                                     dict(blank_frames=[(1, 2, 3)])])
 def test_bad_configuration(kwargs):

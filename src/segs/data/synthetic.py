@@ -2,7 +2,8 @@
 
 A test fixture and stress generator with exact poses and depth, never a stand-in for the real
 readers. Conventions: OpenCV camera (x right, y down, z forward), camera-to-world ground truth,
-world z up (see :mod:`segs.data.synthetic_scene` for the room), timestamps ``index / 30`` s.
+world z up (see :mod:`segs.data.synthetic_scene` for the room and the corridor), timestamps
+``index / 30`` s.
 
 Knobs:
 
@@ -12,9 +13,13 @@ Knobs:
   drifting 0.3 m forward, small rotations; ping-pong over a 3 m segment) or ``"orbit"``
   (a circle of radius 1.3 m looking at the room centre) or ``"pan"`` (rotation in place: the
   camera stays at the room centre, 1.4 m high, and turns its yaw once around per lap with a
-  small pitch nod; every surface point is seen along one viewing ray whatever the frame).
+  small pitch nod; every surface point is seen along one viewing ray whatever the frame), or
+  ``"forward"`` (driving / walking: down a 5 m wide, 80 m long corridor with pillars and low
+  blocks along its walls, looking ahead, weaving +-0.6 m sideways with +-6 degrees of yaw; depths
+  from about 1 m to 70 m; the only trajectory in the corridor, the others are in the room).
 - ``speed``: for ``loop``, ``orbit`` and ``pan`` the number of laps over the whole sequence; for ``line``
-  the number of times the 3 m segment is travelled (back and forth). The frame angle is
+  the number of times the 3 m segment is travelled (back and forth); for ``forward`` the number
+  of 24 m stretches travelled (at most 2.9: the corridor ends). The frame angle is
   ``2 pi speed i / (n_frames - 1)``: speed 2 = twice the motion between consecutive frames for a
   fixed ``n_frames``. The last frame is back at the first pose whenever ``speed`` is an integer
   (loop, orbit) or an even integer (line) -- with the default ``speed=1`` a loop closes exactly.
@@ -38,10 +43,13 @@ from typing import Iterable
 import numpy as np
 
 from segs.data.frame import SENSORS, Camera, Frame, Sequence
-from segs.data.synthetic_scene import TEXTURES, get_scene
+from segs.data.synthetic_scene import CORRIDOR, TEXTURES, get_scene
 from segs.errors import ConfigError
 
-TRAJECTORIES = ("loop", "line", "orbit", "pan")
+TRAJECTORIES = ("loop", "line", "orbit", "pan", "forward")
+#: metres of corridor per unit of `speed` on the forward trajectory, and its start (y)
+FORWARD_STRETCH = 24.0
+FORWARD_START = -1.0
 FPS = 30.0
 _CACHE_FRAMES = 32
 
@@ -90,12 +98,24 @@ def _pan_pose(theta: float) -> np.ndarray:
     return look_pose(np.array([0.0, 0.0, 1.4]), _direction(theta, pitch))
 
 
+def _forward_pose(s: float) -> np.ndarray:
+    """Pose after s metres along the corridor (+y): weaving sideways, looking ahead."""
+    w = 2 * np.pi * s
+    pos = np.array([0.6 * np.sin(w / 23.0), FORWARD_START + s, 1.5 + 0.1 * np.sin(w / 7.0)])
+    yaw = np.radians(90.0 + 6.0 * np.sin(w / 17.0 + 0.5))
+    pitch = np.radians(-2.0 + 2.0 * np.sin(w / 11.0))
+    return look_pose(pos, _direction(yaw, pitch), np.radians(1.5 * np.sin(w / 13.0)))
+
+
 def trajectory_poses(kind: str, n_frames: int, speed: float = 1.0) -> np.ndarray:
     """Camera-to-world poses [n_frames,4,4] float64 of a named trajectory (see module doc)."""
-    make = {"loop": _loop_pose, "line": _line_pose, "orbit": _orbit_pose, "pan": _pan_pose}[kind]
+    make = {"loop": _loop_pose, "line": _line_pose, "orbit": _orbit_pose, "pan": _pan_pose,
+            "forward": _forward_pose}[kind]
     thetas = 2 * np.pi * speed * np.arange(n_frames) / max(n_frames - 1, 1)
     if kind == "line":
         thetas = thetas / 2  # one segment traversal per unit of speed
+    elif kind == "forward":  # metres along the corridor
+        thetas = thetas * FORWARD_STRETCH / (2 * np.pi)
     return np.stack([make(t) for t in thetas]) if n_frames else np.zeros((0, 4, 4))
 
 
@@ -122,7 +142,8 @@ def _blank_set(blank_frames: Iterable) -> frozenset[int]:
     return frozenset(out)
 
 
-def _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseline) -> None:
+def _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseline, speed) -> None:
+    max_speed = (CORRIDOR[1][1] - 6.0 - FORWARD_START) / FORWARD_STRETCH
     checks = [
         (sensor in SENSORS, f"sensor must be one of {SENSORS}, got {sensor!r}"),
         (trajectory in TRAJECTORIES, f"trajectory must be one of {TRAJECTORIES}, got {trajectory!r}"),
@@ -130,6 +151,8 @@ def _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseli
         (n_frames >= 1 and width >= 2 and height >= 2, "n_frames >= 1, width, height >= 2 needed"),
         (0.0 < fov_deg < 170.0, f"fov_deg must be in (0, 170), got {fov_deg}"),
         (sensor != "stereo" or baseline > 0, f"stereo baseline must be > 0, got {baseline}"),
+        (trajectory != "forward" or 0 <= speed <= max_speed,
+         f"forward speed must be in [0, {max_speed:.2f}] (the corridor ends), got {speed}"),
     ]
     for ok, message in checks:
         if not ok:
@@ -137,7 +160,7 @@ def _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseli
 
 
 class SyntheticSequence(Sequence):
-    """Procedural room rendered by ray casting, with exact c2w poses and depth.
+    """Procedural room (or corridor, for "forward") rendered by ray casting, with exact c2w poses and depth.
 
     Frames are rendered on demand and kept in a small LRU cache (32 frames). Rendering a
     320x240 frame takes a few milliseconds (twice that in stereo).
@@ -161,7 +184,7 @@ class SyntheticSequence(Sequence):
         fov_deg: float = 70.0,
     ):
         n_frames, width, height = int(n_frames), int(width), int(height)
-        _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseline)
+        _check(sensor, n_frames, width, height, trajectory, texture, fov_deg, baseline, float(speed))
         self.sensor, self.exposure_change, self.dropped = sensor, float(exposure_change), 0
         self.name = f"synthetic_{trajectory}_{texture}"
         fx = float((width / 2.0) / np.tan(np.radians(fov_deg) / 2.0))
@@ -170,8 +193,8 @@ class SyntheticSequence(Sequence):
         self.timestamps = np.arange(n_frames, dtype=np.float64) / FPS
         self.gt_poses = trajectory_poses(trajectory, n_frames, speed)
         self.blank = _blank_set(blank_frames)
-        self._texture_seed = (texture, seed)
-        self._scene = get_scene(texture, seed)
+        self._texture_seed = (texture, seed, "corridor" if trajectory == "forward" else "room")
+        self._scene = get_scene(*self._texture_seed)
         u, v = np.meshgrid(np.arange(width), np.arange(height))
         self._rays = (((u - self.camera.cx) / fx).ravel().astype(np.float32),
                       ((v - self.camera.cy) / fx).ravel().astype(np.float32))
@@ -199,7 +222,8 @@ class SyntheticSequence(Sequence):
         origin = c2w[:3, 3].astype(np.float32)
         t, sid = self._scene.cast(origin, dirs)
         points = [origin[a] + t * dirs[a] for a in range(3)]
-        return self._scene.shade(points, sid, shape), t.reshape(shape)
+        footprint = self._scene.footprint(dirs, t, sid, self.camera.fx) if self._scene.mip_levels > 1 else None
+        return self._scene.shade(points, sid, shape, footprint), t.reshape(shape)
 
     def _image(self, index: int, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rgb, depth = self.render(c2w)
