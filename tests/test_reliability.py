@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -130,19 +131,20 @@ def test_a_folder_holding_a_finished_run_is_refused_before_anything_is_written(t
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before  # overrides.yaml, log, metrics untouched
 
 
-def test_two_runs_given_the_same_folder_do_not_mix(tmp_path):
+def test_a_folder_another_run_is_writing_into_is_refused(tmp_path):
+    # this test process holds the folder as a running segs.train does (the same flock)
+    from segs.run_folder import claim, release
+
     out = tmp_path / "run"
-    args = [sys.executable, "-m", "segs.train", *TINY, "trainer.max_steps=600", f"hydra.run.dir={out}"]
-    first = _cli(args[3:])
-    deadline = time.time() + 120
-    while not (out / ".hydra" / "overrides.yaml").exists() and time.time() < deadline and first.poll() is None:
-        time.sleep(0.1)
-    second = subprocess.run(args[:-2] + ["trainer.max_steps=20", args[-1]], capture_output=True, text=True, timeout=300)
-    _, err = first.communicate(timeout=300)
-    assert first.returncode == 0, err[-2000:]
-    assert second.returncode == 2 and "is running in this folder" in _lines(second.stderr)[0], second.stderr[-2000:]
-    assert json.loads((out / "metrics.json").read_text())["iterations"] == 600
-    assert "trainer.max_steps=600" in (out / ".hydra" / "overrides.yaml").read_text()
+    claim(out)
+    try:
+        second = subprocess.run([sys.executable, "-m", "segs.train", *TINY, f"hydra.run.dir={out}"], capture_output=True,
+                                text=True, timeout=300)  # fmt: skip
+    finally:
+        release(out)
+    assert second.returncode == 2 and _lines(second.stderr) == [
+        f"error: hydra.run.dir={out}: process {os.getpid()} on {socket.gethostname()} is running in this folder; give this run another folder"]
+    assert [p.name for p in out.iterdir()] == [".segs.lock"]  # nothing of the second run written
 
 
 def test_default_run_folders_differ_within_a_second():

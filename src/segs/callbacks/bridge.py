@@ -33,7 +33,8 @@ class SlamBridge(L.Callback):
         (the frames after the initial keyframes are spread evenly over those steps), as if the
         camera streamed in real time beside training; frames_per_step, when set, replaces it.
     min_initial_keyframes: mapping starts when the frontend has made this many keyframes.
-    holdout_every: frames with index % n == 0 never become training views (0 = off).
+    holdout_every: frames with index % n == 0 never become training views, and the map points
+        their keyframes create never reach the mapper (counted in held_out_points); 0 = off.
     """
 
     def __init__(self, sequence: Sequence, frontend: Frontend, feed_until: float = 0.2,
