@@ -11,10 +11,11 @@ import pytest
 from segs.data.synthetic import SyntheticSequence
 from segs.errors import ConfigError, DataError
 from segs.slam import vocabulary as V
+from segs.slam.config import FeatureConfig
 from segs.slam.features import OrbExtractor, to_gray
 from segs.slam.vocabulary import KeyFrameDatabase, TrainingConfig, Vocabulary, bow_score
 
-SMALL = TrainingConfig(k=4, depth=2, views=3, n_features=300)
+SMALL = TrainingConfig(k=4, depth=2, views=3, features=FeatureConfig(n_features=300))
 
 
 @pytest.fixture(scope="module")
@@ -41,10 +42,10 @@ def test_shipped_vocabulary_is_the_default_and_small():
 def test_training_is_reproducible_and_survives_save_load(images, tmp_path):
     voc, n_desc, n_views = V.train_from_images(images, SMALL)
     again, _, _ = V.train_from_images(images, SMALL)
-    assert n_views == 2 * SMALL.views and n_desc > 2 * SMALL.n_features
+    assert n_views == 2 * SMALL.views and n_desc > 2 * SMALL.features.n_features
     assert voc.n_words == 16 and all(np.array_equal(a, b) for a, b in zip(voc.levels, again.levels))
     assert np.array_equal(voc.idf, again.idf)
-    other, _, _ = V.train_from_images(images, TrainingConfig(k=4, depth=2, views=3, n_features=300, seed=1))
+    other, _, _ = V.train_from_images(images, TrainingConfig(k=4, depth=2, views=3, seed=1, features=SMALL.features))
     assert not all(np.array_equal(a, b) for a, b in zip(voc.levels, other.levels))
     voc.save(tmp_path / "v.npz")
     loaded = Vocabulary.load(tmp_path / "v.npz")

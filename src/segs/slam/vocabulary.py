@@ -25,13 +25,14 @@ import importlib.util
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
 from segs.errors import ConfigError, DataError, UserInputError
+from segs.slam.config import FeatureConfig
 from segs.slam.features import hamming_matrix
 
 DEFAULT_PATH = Path(__file__).with_name("vocab") / "orb_k10_l4.npz"
@@ -59,20 +60,18 @@ _PIP_NAMES = {"skimage": "scikit-image", "sklearn": "scikit-learn"}
 
 @dataclass
 class TrainingConfig:
-    """Vocabulary training: tree shape, views per image and the ORB settings (the frontend's).
+    """Vocabulary training: tree shape, views per image and the ORB settings.
 
     k, depth: branching and levels (k^depth words); views: per image, the image itself and
     views - 1 random augmentations (`augment`); max_size: (width, height) of a view at most;
-    seed: the augmentations and the clustering."""
+    seed: the augmentations and the clustering; features: the extractor's (the frontend's)."""
 
     k: int = 10
     depth: int = 4
     views: int = 32
     seed: int = 0
-    n_features: int = 1500
-    fast_threshold: int = 20
-    min_fast_threshold: int = 7
     max_size: tuple[int, int] = (640, 480)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
 
 
 def _majority(desc: np.ndarray) -> np.ndarray:
@@ -281,7 +280,8 @@ def corpus_paths() -> list[Path]:
     return out
 
 
-def _view_homography(h: int, w: int, rng: np.random.Generator, max_size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
+def _view_homography(h: int, w: int, rng: np.random.Generator,
+                     max_size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
     """Random homography [3,3] from an h x w image to a view, and the view size (width, height).
 
     A virtual camera (focal max(h, w), looking at the image centre) turns by up to 35 degrees
@@ -294,7 +294,8 @@ def _view_homography(h: int, w: int, rng: np.random.Generator, max_size: tuple[i
     a = rng.uniform(0, 2 * np.pi)
     turn = cv2.Rodrigues(np.radians(rng.uniform(0, 35)) * np.array([np.cos(a), np.sin(a), 0.0]))[0]
     sim = np.eye(3)
-    sim[:2] = cv2.getRotationMatrix2D((0.0, 0.0), rng.uniform(-30, 30), float(np.exp(rng.uniform(np.log(0.5), np.log(2)))))
+    angle = rng.uniform(-30, 30)
+    sim[:2] = cv2.getRotationMatrix2D((0.0, 0.0), angle, float(np.exp(rng.uniform(np.log(0.5), np.log(2)))))
     H = sim @ cam @ turn @ np.linalg.inv(cam)
     corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64).reshape(-1, 1, 2)
     warped = cv2.perspectiveTransform(corners, H).reshape(-1, 2)
@@ -315,7 +316,8 @@ def augment(gray: np.ndarray, rng: np.random.Generator,
 
     H, (w, h) = _view_homography(*gray.shape, rng, max_size)
     view = cv2.warpPerspective(gray, H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
-    valid = cv2.warpPerspective(np.full_like(gray, 255), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0) > 0
+    inside = cv2.warpPerspective(np.full_like(gray, 255), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
+    valid = inside > 0
     x = (view.astype(np.float32) / 255.0) ** float(np.exp(rng.uniform(np.log(0.6), np.log(1.6))))
     x = x * rng.uniform(0.6, 1.3) + rng.uniform(-0.1, 0.1)
     if rng.random() < 0.5:
@@ -323,7 +325,7 @@ def augment(gray: np.ndarray, rng: np.random.Generator,
     x = x + rng.normal(0.0, rng.uniform(0, 3 / 255), x.shape).astype(np.float32)
     view = np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if rng.random() < 0.7:
-        ok, buf = cv2.imencode(".jpg", view, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(50, 96))])
+        _, buf = cv2.imencode(".jpg", view, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(50, 96))])
         view = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     view[~valid] = 0
     return view, valid
@@ -359,12 +361,15 @@ def training_views(paths: list[str | Path], cfg: TrainingConfig) -> Iterator[tup
             yield augment(img, rng, cfg.max_size)
 
 
-def train_from_images(paths: list[str | Path], cfg: TrainingConfig = TrainingConfig()) -> tuple[Vocabulary, int, int]:
+def train_from_images(paths: list[str | Path],
+                      cfg: TrainingConfig = TrainingConfig()) -> tuple[Vocabulary, int, int]:
     """Vocabulary from the ORB features of `training_views` (each view is an image of the idf)
     -> (vocabulary, descriptors, views)."""
     from segs.slam.features import OrbExtractor
 
-    ex = OrbExtractor(cfg.n_features, 1.2, 8, cfg.fast_threshold, cfg.min_fast_threshold)
+    fc = cfg.features
+    ex = OrbExtractor(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold, fc.min_fast_threshold,
+                      fc.cell_size, fc.oversample)
     descs, owner = [], []
     for view, valid in training_views(paths, cfg):
         d = view_descriptors(ex, view, valid)
@@ -372,7 +377,8 @@ def train_from_images(paths: list[str | Path], cfg: TrainingConfig = TrainingCon
         owner.append(np.full(len(d), len(owner)))
     desc = np.concatenate(descs) if descs else np.zeros((0, 32), np.uint8)
     if len(desc) < cfg.k ** cfg.depth:
-        raise DataError(f"vocabulary: {len(desc)} descriptors for {cfg.k ** cfg.depth} words; give more images or views")
+        raise DataError(f"vocabulary: {len(desc)} descriptors for {cfg.k ** cfg.depth} words; "
+                        "give more images or views")
     return Vocabulary.train(desc, np.concatenate(owner), cfg.k, cfg.depth, cfg.seed), len(desc), len(owner)
 
 
