@@ -93,7 +93,7 @@ def test_database_query_ranks_the_same_view_first(images):
 
 
 def test_load_reports_a_missing_or_malformed_file(tmp_path):
-    with pytest.raises(ConfigError, match="loop.vocabulary: .*nope.npz: file not found"):
+    with pytest.raises(ConfigError, match="slam.loop.vocabulary: .*nope.npz: file not found"):
         Vocabulary.load(tmp_path / "nope.npz")
     (tmp_path / "text.npz").write_text("not a zip")
     with pytest.raises(ConfigError, match="not a vocabulary"):

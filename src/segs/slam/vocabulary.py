@@ -156,16 +156,16 @@ class Vocabulary:
         """A saved tree (.npz); None = the shipped one. Missing or malformed: ConfigError."""
         path = Path(path) if path else DEFAULT_PATH
         if not path.is_file():
-            raise ConfigError(f"loop.vocabulary: {path}: file not found")
+            raise ConfigError(f"slam.loop.vocabulary: {path}: file not found")
         try:
             with np.load(path) as z:
                 n = len([f for f in z.files if f.startswith("level")])
                 k, levels, idf = int(z["k"]), [z[f"level{i}"] for i in range(n)], z["idf"]
         except (OSError, ValueError, KeyError) as e:
-            raise ConfigError(f"loop.vocabulary: {path}: not a vocabulary .npz ({type(e).__name__})") from None
+            raise ConfigError(f"slam.loop.vocabulary: {path}: not a vocabulary .npz ({type(e).__name__})") from None
         shapes_ok = n > 0 and all(c.shape == (k ** (i + 1), 32) and c.dtype == np.uint8 for i, c in enumerate(levels))
         if not shapes_ok or idf.shape != (k ** n,):
-            raise ConfigError(f"loop.vocabulary: {path}: inconsistent tree (k={k}, {n} levels)")
+            raise ConfigError(f"slam.loop.vocabulary: {path}: inconsistent tree (k={k}, {n} levels)")
         return cls(k, levels, idf)
 
     # --------------------------------------------------------------- transform
