@@ -81,6 +81,7 @@ def run(cfg: DictConfig) -> dict:
     if trainer.interrupted:  # Lightning caught a KeyboardInterrupt itself (no handler installed)
         raise SystemExit(130)
     bridge.complete_sequence()
+    module.to(trainer.strategy.root_device)  # Lightning hands the module back on the CPU after fit
     save_atomic(trainer, out / "checkpoints" / "final.ckpt")
     if not cfg.eval.enabled:
         return {}
