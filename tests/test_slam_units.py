@@ -15,6 +15,7 @@ from segs.slam.features import OrbExtractor, hamming, hamming_matrix, to_gray
 from segs.slam.frame import KeypointGrid
 from segs.slam.geometry import inv_se3, umeyama
 from segs.slam.initialization import MonoInitializer
+from segs.slam.ba_process import BundleAdjusterProcess
 from segs.slam.optimize import BundleAdjuster, Observations, _sim3, _sim3_matrix, pose_graph, refine_pose
 from segs.slam.orb import OrbFrontend
 from segs.slam.runner import run_sequence
@@ -111,6 +112,14 @@ def test_bundle_adjustment_recovers_poses_and_points(stereo):
     pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(len(P))}
     ba = BundleAdjuster(K, bf, 1.2 ** np.arange(8))
     new_poses, new_points = ba.run(noisy, {0, 1}, pts, obs, 20)
+    if stereo:  # the threaded frontend's child-process variant gives the same result
+        child = BundleAdjusterProcess(K, bf, 1.2 ** np.arange(8))
+        try:
+            poses2, points2 = child.run(noisy, {0, 1}, pts, obs, 20)
+        finally:
+            child.close()
+        assert all(np.allclose(poses2[k], new_poses[k]) for k in poses)
+        assert all(np.allclose(points2[i], new_points[i]) for i in new_points)
     for k in poses:
         assert np.abs(inv_se3(new_poses[k])[:3, 3] - inv_se3(poses[k])[:3, 3]).max() < 0.01
     err = np.array([np.linalg.norm(new_points[i] - P[i]) for i in range(len(P))])
