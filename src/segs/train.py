@@ -128,6 +128,7 @@ def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper,
         raise SystemExit(stopper.exit_code)
     if trainer.interrupted:  # Lightning caught a KeyboardInterrupt itself (no handler installed)
         raise SystemExit(130)
+    module.to(trainer.strategy.root_device)  # Lightning hands the module back on the CPU after fit
     final = out / "checkpoints" / "final.ckpt"
     with phase("defer"):
         notes = save_final(trainer, final)

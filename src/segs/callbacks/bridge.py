@@ -65,8 +65,11 @@ class SlamBridge(L.Callback):
         if self._restored:
             return
         bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
+        # also wait for the first map points: the ORB frontend hands them over once they have
+        # survived culling over a few keyframes
         while self.cursor < len(self.sequence) and (
             len(self.frontend.keyframe_frames()) < self.min_initial_keyframes or len(pl_module.store) == 0
+            or pl_module.model.counts()["gaussians"] == 0
         ):
             self._feed_one()
             self._push(self.frontend.poll(), pl_module)

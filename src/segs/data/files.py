@@ -72,6 +72,8 @@ def to_int(token: str, path: Path, lineno: int, what: str = "integer") -> int:
     """A non-negative integer (e.g. nanoseconds), or DataError naming file and line."""
     if not token.isdigit() or not token.isascii():
         raise DataError(f"{path}:{lineno}: expected a non-negative {what}, got {_show(token)}")
+    if int(token) > np.iinfo(np.int64).max:
+        raise DataError(f"{path}:{lineno}: {what} {_show(token)} is out of range (>= 2^63)")
     return int(token)
 
 
