@@ -62,6 +62,7 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
 
     watch: called with "at test view N" before each view (the memory guard's check)."""
     lpips = make_lpips(lpips_weights)
+    lossless = getattr(sequence, "lossless_rgb", None)  # idx -> lossless colour or None
     keep = set(np.asarray(test)[np.linspace(0, len(test) - 1, save_renders).round().astype(int)]) if test and save_renders else set()
     (out / "renders").mkdir(parents=True, exist_ok=True)
     rows = []
@@ -74,6 +75,10 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
         view = View(torch.as_tensor(trajectory[idx], dtype=torch.float32), frame.camera)
         row = {"frame": idx, "psnr": psnr(render, gt), "ssim": ssim(render, gt), "lpips": lpips(render, gt) if lpips else None,
                "active": module.model.count_active(view, active_threshold)}  # fmt: skip
+        clean = lossless(idx) if lossless is not None else None
+        if clean is not None:  # the same frame without compression (7-Scenes frames 150-199)
+            clean = torch.from_numpy(np.ascontiguousarray(clean))
+            row["psnr_lossless"], row["psnr_jpeg_vs_lossless"] = psnr(render, clean), psnr(gt, clean)
         rows.append(row)
         if idx in keep:
             _save_pair(out / "renders" / f"test_{idx:05d}.png", render, frame.rgb)
@@ -83,8 +88,14 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
             lp = "" if r["lpips"] is None else f"{r['lpips']:.5f}"
             f.write(f"{r['frame']},{r['psnr']:.4f},{r['ssim']:.5f},{lp}\n")
     mean = lambda k: float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None  # noqa: E731
-    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows),
-            "active_gaussians": mean("active")}  # fmt: skip
+    out = {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows),
+           "active_gaussians": mean("active")}  # fmt: skip
+    clean = [r for r in rows if "psnr_lossless" in r]
+    if clean:  # PSNR against lossless frames, beside the same views' PSNR against the JPEGs
+        out.update({"lossless_views": len(clean), "psnr_lossless": float(np.mean([r["psnr_lossless"] for r in clean])),
+                    "psnr_jpeg_on_lossless_views": float(np.mean([r["psnr"] for r in clean])),
+                    "psnr_jpeg_vs_lossless": float(np.mean([r["psnr_jpeg_vs_lossless"] for r in clean]))})
+    return out
 
 
 def run_summary(module, sequence, bridge, timing: dict) -> dict:

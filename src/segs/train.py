@@ -159,7 +159,10 @@ def _print_summary(out: Path, m: dict) -> None:
         f"\nsegs: results in {out}\n"
         f"  test views {m['test_views']}: PSNR {_fmt(m['psnr'], '.2f')} dB, SSIM {_fmt(m['ssim'], '.3f')}, "
         f"LPIPS {_fmt(m['lpips'], '.3f')}\n"
-        f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm over {m['frames_tracked']}/{m['frames']} tracked frames\n"
+        + (f"  {m['lossless_views']} of them also lossless: PSNR {m['psnr_lossless']:.2f} dB against the lossless frames "
+           f"({m['psnr_jpeg_on_lossless_views']:.2f} dB against the JPEGs, which score {m['psnr_jpeg_vs_lossless']:.2f} dB)\n"
+           if m.get("lossless_views") else "")
+        + f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm over {m['frames_tracked']}/{m['frames']} tracked frames\n"
         f"  {m['iterations']} iterations in {m['mapping_time_s']:.1f} s, {m['gaussians']} Gaussians, "
         f"{m['anchors']} anchors, {m['model_mb']:.2f} MB\n"
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")
