@@ -57,8 +57,9 @@ def scene_stats(scene, backend: str) -> dict:
         p = project(scene.means, scene.quats, scene.scales, scene.viewmat, scene.K,
                     scene.width, scene.height, 0.01, 100.0)
         ids, _ = _torch_backend.bin_gaussians(p.means2d, p.depths, p.radii, scene.width, scene.height)
-        r = rasterize(*scene.params(), scene.viewmat, scene.K, scene.width, scene.height,
-                      backend=backend)
+        dev = "cuda" if backend == "cuda" else "cpu"
+        r = rasterize(*[t.to(dev) for t in scene.params()], scene.viewmat.to(dev), scene.K.to(dev),
+                      scene.width, scene.height, backend=backend)
     return {"visible": int((p.radii > 0).sum()), "nominal_pairs": int(ids.numel()) * 256,
             "alpha_mean": float(r.alpha.mean()), "alpha_gt_0.99": float((r.alpha > 0.99).float().mean())}
 

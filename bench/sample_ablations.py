@@ -1,9 +1,10 @@
 """Paper Table 5 on the bundled real TUM sample: full SEGS and its ablations, same budget.
 
 Runs `python -m segs.train +experiment=sample slam=known_poses [+ablation=X] seed=S` for every
-variant and seed (a finished run folder is reused, so the script can be interrupted and
-restarted), then writes the mean / std table into docs/results.md between the markers
-<!-- sample-ablations:begin --> and <!-- sample-ablations:end -->.
+variant and seed (a finished run folder is reused and an interrupted one resumed from its
+checkpoint, so the script can be interrupted and restarted), then writes the mean / std table
+into docs/results.md between the markers <!-- sample-ablations:begin --> and
+<!-- sample-ablations:end -->.
 
     python bench/sample_ablations.py --steps 3000 --seeds 0 1 2
 """
@@ -36,9 +37,11 @@ def run_one(ablation: str | None, seed: int, steps: int, out: Path, extra: list[
     metrics = out / "metrics.json"
     if metrics.exists():
         return json.loads(metrics.read_text())
+    # an interrupted run resumes from its own checkpoint (segs.train refuses its folder otherwise)
+    ckpt = next((p for p in (out / "checkpoints" / "final.ckpt", out / "checkpoints" / "last.ckpt") if p.is_file()), None)
     cmd = [sys.executable, "-m", "segs.train", "+experiment=sample", "slam=known_poses", f"seed={seed}",
            f"trainer.max_steps={steps}", f"hydra.run.dir={out}", "callbacks.slam_bridge.progress=false",
-           "eval.progress=false", *extra] + ([f"+ablation={ablation}"] if ablation else [])  # fmt: skip
+           "eval.progress=false", *extra] + ([f"+ablation={ablation}"] if ablation else []) + ([f"ckpt_path={ckpt}"] if ckpt else [])  # fmt: skip
     print(" ".join(cmd[1:]), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     return json.loads(metrics.read_text())

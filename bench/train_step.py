@@ -30,12 +30,13 @@ from segs.raster import rasterize
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def build(model: str, steps: int, backend: str):
+def build(model: str, steps: int, backend: str, device: str = "cpu"):
     cfg = compose(["+experiment=sample", "slam=known_poses", f"trainer.max_steps={steps}", f"raster.backend={backend}"]
                   + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []), output_dir="/tmp/segs_bench")  # fmt: skip
     seq = make_sequence(cfg.data)
     frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
     module = MappingModule(instantiate(cfg.model), raster=OmegaConf.to_container(cfg.raster), **cfg.mapping)
+    module.to(device)
     bridge = SlamBridge(seq, frontend, progress=False)
     for _ in range(len(seq)):
         bridge._feed_one()
@@ -43,18 +44,25 @@ def build(model: str, steps: int, backend: str):
     return module
 
 
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
 def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
     t = {}
-    clock = time.perf_counter
+    dev = str(module.device)
+    clock = lambda: (_sync(dev), time.perf_counter())[1]  # noqa: E731
     kf = module.store.sample()
-    view = View(kf.w2c, kf.camera, kf.kf_id)
+    view = View(kf.w2c.to(dev), kf.camera, kf.kf_id)
+    gt = kf.rgb().to(dev)
     t0 = clock()
     dec = module.model.decode(view, step)
     t1 = clock()
-    out = rasterize(dec.means, dec.quats, dec.scales, dec.opacities, dec.colors, view.w2c, view.K, view.camera.width,
-                    view.camera.height, background=torch.zeros(3), backend=module.raster["backend"])  # fmt: skip
+    out = rasterize(dec.means, dec.quats, dec.scales, dec.opacities, dec.colors, view.w2c, view.K.to(dev), view.camera.width,
+                    view.camera.height, background=torch.zeros(3, device=dev), backend=module.raster["backend"])  # fmt: skip
     t2 = clock()
-    terms = module.model.loss(out, kf.rgb(), dec, step)
+    terms = module.model.loss(out, gt, dec, step)
     t3 = clock()
     terms["total"].backward()
     t4 = clock()
@@ -70,9 +78,9 @@ def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
     return t
 
 
-def bench(model: str, schedule: int, warmup: int, iters: int, backend: str) -> dict:
+def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu") -> dict:
     torch.manual_seed(0)
-    module = build(model, schedule, backend)
+    module = build(model, schedule, backend, device)
     opt = make_adam(module.model.param_groups())
     for s in range(warmup):
         iteration(module, opt, s, False)
@@ -89,10 +97,13 @@ def main() -> None:
     p.add_argument("--iters", type=int, default=30)
     p.add_argument("--backend", default="cpu")
     p.add_argument("--models", nargs="+", default=["segs", "plain_3dgs"])
+    p.add_argument("--device", default="cpu", help="torch device of the model (cuda with --backend cuda)")
+    p.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "train_step.json"))
     args = p.parse_args()
-    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend) for m in args.models}
+    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device) for m in args.models}
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
-    print(f"{cpu}, {torch.get_num_threads()} threads, backend {args.backend}, 320x240, medians of {args.iters} iterations "
+    gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else None
+    print(f"{gpu or cpu}, {torch.get_num_threads()} threads, backend {args.backend}, 320x240, medians of {args.iters} iterations "
           f"after {args.warmup} of a {args.schedule}-step schedule")
     keys = ["decode", "raster_fwd", "loss", "backward", "step+stats", "total"]
     print(f"| model | Gaussians drawn | anchors | {' | '.join(k + ' ms' for k in keys)} | it/s |")
@@ -100,9 +111,9 @@ def main() -> None:
     for m, r in results.items():
         cells = " | ".join(f"{1000 * r[k]:.1f}" for k in keys)
         print(f"| {m} | {r['gaussians']:.0f} | {r['anchors']} | {cells} | {1 / r['total']:.2f} |")
-    out = ROOT / "outputs" / "bench"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "train_step.json").write_text(json.dumps({"cpu": cpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}, indent=2))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"cpu": cpu, "gpu": gpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}, indent=2))
 
 
 if __name__ == "__main__":

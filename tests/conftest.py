@@ -1,6 +1,8 @@
 """Shared fixtures: composed configs for tiny CPU runs."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from segs.config import compose
@@ -33,3 +35,15 @@ def tiny_cfg(tmp_path):
         return compose(TINY + list(overrides), output_dir=str(out or tmp_path / "run"))
 
     return make
+
+
+SEVEN_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+
+
+@pytest.fixture(scope="session")
+def seven_scenes_root():
+    """The shared 600 real 7-Scenes redkitchen frames (../shared/data; non-commercial licence, not
+    in the repository); tests using it are skipped where the folder is absent."""
+    if not (SEVEN_SCENES / "seq").is_dir():
+        pytest.skip(f"7-Scenes frames not found at {SEVEN_SCENES} (shared data, not in the repository)")
+    return SEVEN_SCENES

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from segs.config import REPO_ROOT, compose, user_errors_exit
 from segs.train import run
@@ -139,3 +140,70 @@ def test_images_too_small_for_any_map_point(tmp_path, capsys):
     assert _exits_2_with_one_line(cfg, capsys).startswith("error: data: the frontend gave no 3D point")
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "tracking_failed" and m["psnr"] is None and m["gaussians"] == 0
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def test_truncated_jpeg_is_refused_by_train_and_track(tmp_path, capsys):
+    # libjpeg decodes the first half and fills the rest with grey, with a warning on stderr only
+    from segs.track import run as track
+
+    root = _copy(tmp_path)
+    _truncate(root / "rgb" / "0002_rgb_raw.jpg")
+    msg = _fails(tmp_path, capsys, f"data.root={root}")
+    assert msg == f"error: {root / 'rgb' / '0002_rgb_raw.jpg'}: truncated JPEG (the data ends before the end-of-image marker)"
+    cfg = compose(FAST + [f"data.root={root}", "task_name=track"], output_dir=str(tmp_path / "track"))
+    with pytest.raises(SystemExit) as exc:
+        with user_errors_exit():
+            track(cfg, progress=False)
+    assert exc.value.code == 2 and capsys.readouterr().err.strip() == msg
+    assert not (tmp_path / "track" / "tracking.json").exists()
+
+
+def test_every_real_jpeg_reads_complete():
+    from segs.data.files import jpeg_is_complete
+
+    jpegs = sorted(REPO_ROOT.glob("datasets/**/*.jpg"))
+    assert jpegs and all(jpeg_is_complete(p.read_bytes()) for p in jpegs)
+    data = jpegs[0].read_bytes()
+    assert jpeg_is_complete(data + b"\xff\xda trailing bytes after the image are ignored")
+    assert not any(jpeg_is_complete(data[:cut]) for cut in (len(data) - 1, len(data) - 2, len(data) // 2, 300, 2))
+
+
+def test_euroc_pair_without_baseline(tmp_path, capsys):
+    mav = tmp_path / "V1_01_copy" / "mav0"
+    micro = REPO_ROOT / "datasets" / "euroc_v101_micro" / "mav0"
+    shutil.copytree(micro, mav)
+    shutil.copy(mav / "cam0" / "sensor.yaml", mav / "cam1" / "sensor.yaml")  # cam1 where cam0 is
+    msg = _fails(tmp_path, capsys, f"data.root={mav.parent}", "data=euroc", "camera=stereo")
+    assert msg.startswith(f"error: {mav / 'cam1' / 'sensor.yaml'}: T_BS puts cam1 0.0000 m from cam0")
+
+
+# Every value of the list is refused before any frame is tracked, with one line and exit 2
+@pytest.mark.parametrize("override,key", [
+    ("seed=-1", "seed"), ("eval.ate_align=bogus", "eval.ate_align"), ("eval.lpips_weights=/nope", "eval.lpips_weights"),
+    ("ckpt_path=/nope.ckpt", "ckpt_path"), ("ckpt_path=/", "ckpt_path"), ("raster.near=-1", "raster.near"),
+    ("raster.far=0.001", "raster.far"), ("mapping.view_budget=0", "mapping.view_budget"),
+    ("trainer.precision=16", "trainer.precision"), ("model.voxel_size=inf", "model.voxel_size"),
+    ("data.downscale=1000", "data.downscale"), ("raster.backend=cuda", "raster.backend")])  # fmt: skip
+def test_bad_values_are_refused_before_any_work(tmp_path, capsys, monkeypatch, override, key):
+    from segs.callbacks.bridge import SlamBridge
+
+    if override == "raster.backend=cuda" and torch.cuda.is_available():
+        override = "raster.backend=cuda trainer.accelerator=cpu"
+    monkeypatch.setattr(SlamBridge, "_feed_one", lambda self: pytest.fail("a frame was tracked before the check"))
+    msg = _fails(tmp_path, capsys, *override.split())
+    assert msg.startswith(("error: config key " + key, "error: " + key)), msg
+
+
+def test_half_the_depth_images_missing_is_counted_in_the_results(tmp_path, caplog):
+    root = _copy(tmp_path, n=16)
+    lines = (root / "depth.txt").read_text().splitlines()
+    (root / "depth.txt").write_text("\n".join(lines[: len(lines) - 8]) + "\n")  # the last 8 depth lines gone
+    m = run(compose(FAST + [f"data.root={root}", "eval.holdout_every=4"], output_dir=str(tmp_path / "run")))
+    assert m["frames"] == 8 and m["frames_dropped"] == 8 and "8 frames listed by the dataset were left out" in m["frames_note"]
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["frames_dropped"] == 8
+    assert any("8 of the frames listed" in r.getMessage() for r in caplog.records)

@@ -72,6 +72,17 @@ def test_a_run_without_metrics_is_a_crash_without_numbers(tmp_path):
     assert "20.00" not in crashed and crashed.count("n/a") >= 10
 
 
+def test_a_run_trained_without_evaluation_is_not_a_crash(tmp_path):
+    fake_run(tmp_path / "m" / "0", ["a=1"], {})
+    fake_run(tmp_path / "m" / "1", ["eval.enabled=false"], {"status": "not_evaluated", "psnr": None, "ssim": None})
+    runs = collect([tmp_path / "m"])
+    assert [r.status for r in runs] == ["finished", "not_evaluated"] and not any(r.crashed for r in runs)
+    md = write_report([tmp_path / "m"])["markdown"].read_text()
+    assert "2 jobs: 1 finished, 1 trained without evaluation (eval.enabled=false), 0 crashed" in md
+    row = [r for r in _table_rows(md) if "eval.enabled=false" in r][0]
+    assert "| not_evaluated |" in row and "20.00" not in row
+
+
 def test_jobs_that_never_started_are_listed_from_multirun_yaml(tmp_path):
     sweep = tmp_path / "sweep"
     fake_run(sweep / "0", ["+x=1", "seed=0"], {})

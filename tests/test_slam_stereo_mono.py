@@ -11,7 +11,9 @@ from segs.trajectory import ate
 
 @pytest.fixture(scope="module")
 def stereo_loop():
-    return SyntheticSequence(sensor="stereo", n_frames=60, width=320, height=240, trajectory="loop", seed=0)
+    # 1.2 laps, as tests/test_slam_rgbd.py: enough keyframes revisit the start for a detection
+    return SyntheticSequence(sensor="stereo", n_frames=72, width=320, height=240, trajectory="loop",
+                             speed=71 / 59, seed=0)
 
 
 def test_stereo_loop_closing_reduces_drift(stereo_loop):

@@ -85,21 +85,26 @@ def test_tiny_two_job_multirun_completes_and_reports(tmp_path):
     assert all((sweep / f).stat().st_size > 0 for f in ("speed_accuracy.png", "compactness.png", "stability.png"))
     runs = collect([sweep])
     assert [r.stress for r in runs] == [("noise", 0.0), ("noise", 8.0)]
+    # the same sweep folder again: refused before any job runs, the first sweep untouched
+    again = _multirun(tmp_path, "+data.stress={kind:noise,level:0},{kind:noise,level:8}", launcher="local")
+    assert again.returncode == 2 and again.stderr.strip().splitlines()[-1] == (
+        f"error: hydra.sweep.dir={sweep} already holds a sweep (multirun.yaml); give this run another folder")
+    assert json.loads((sweep / "0" / "metrics.json").read_text())["iterations"] == 6
 
 
 def test_a_failing_job_does_not_hide_the_other_and_is_recorded(tmp_path):
     # job 0 raises when Lightning's Trainer is built (a cheap failure that is not a user-input error:
     # those exit the whole process, see docs/experiments.md)
-    proc = _multirun(tmp_path, "trainer.precision=bogus,32", launcher="basic")
+    proc = _multirun(tmp_path, "trainer.accelerator=bogus,cpu", launcher="basic")
     assert proc.returncode != 0  # Hydra re-raises the failure after the batch
     sweep = tmp_path / "sweep"
-    assert "Precision 'bogus' is invalid" in (sweep / "0" / "job_failed.txt").read_text().splitlines()[0]
+    assert "invalid accelerator name" in (sweep / "0" / "job_failed.txt").read_text().splitlines()[0]
     assert (sweep / "1" / "metrics.json").is_file()
     report = subprocess.run([sys.executable, "-m", "segs.report", str(sweep)], cwd=REPO_ROOT, capture_output=True,
                             text=True, timeout=120)  # fmt: skip
     assert report.returncode == 0, report.stderr
     md = (sweep / "report.md").read_text()
-    assert "2 jobs: 1 finished, 1 crashed" in md and "Precision 'bogus' is invalid" in md
+    assert "2 jobs: 1 finished, 1 crashed" in md and "invalid accelerator name" in md
 
 
 def test_a_job_whose_tracking_fails_is_a_result_not_a_crash(tmp_path):

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import contextlib
+import logging
+import math
 import sys
 from pathlib import Path
 from typing import Callable, Iterator
@@ -9,6 +11,8 @@ from typing import Callable, Iterator
 from omegaconf import DictConfig, OmegaConf
 
 from segs.errors import ConfigError, UserInputError
+
+log = logging.getLogger("segs")
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CONF_DIR = REPO_ROOT / "conf"
@@ -35,17 +39,35 @@ def compose(overrides: list[str] | None = None, config_name: str = "train", outp
     return cfg
 
 
+ALIGNMENTS = ("se3", "sim3", "none")
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 # (key, predicate, expectation) checked before anything runs; keys absent from a config are skipped
 _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("trainer.max_steps", lambda v: isinstance(v, int) and v > 0, "an integer > 0"),
-    ("seed", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
+    ("trainer.precision", lambda v: str(v) in ("32", "32-true"), "32 (the rasterizers and the mapper work in float32)"),
+    ("seed", lambda v: isinstance(v, int) and 0 <= v < 2**32, "an integer in [0, 2^32)"),
+    ("ckpt_path", lambda v: v is None or isinstance(v, str), "null or a checkpoint file"),
     ("eval.holdout_every", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
     ("eval.save_renders", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
-    ("data.downscale", lambda v: isinstance(v, (int, float)) and v >= 1, "a number >= 1"),
+    ("eval.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
+    ("camera.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
+    ("eval.lpips_weights", lambda v: v is None or (isinstance(v, str) and Path(v).expanduser().is_file()),
+     "null or an existing AlexNet weights file (alexnet-owt-7be5be79.pth)"),
+    ("eval.active_opacity", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
+    ("data.downscale", lambda v: _number(v) and v >= 1, "a number >= 1"),
     ("camera.sensor", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
     ("raster.backend", lambda v: v in ("auto", "torch", "cpu", "cuda"), "one of auto, torch, cpu, cuda"),
-    ("callbacks.slam_bridge.frames_per_step", lambda v: v is None or (isinstance(v, (int, float)) and v > 0), "null or a number > 0"),
-    ("callbacks.slam_bridge.feed_until", lambda v: isinstance(v, (int, float)) and 0 < v <= 1, "a fraction in (0, 1]"),
+    ("raster.near", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
+    ("mapping.view_budget", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
+    ("mapping.min_scene_extent", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
+    ("mapping.adam_eps", lambda v: _number(v) and v > 0, "a number > 0"),
+    ("callbacks.slam_bridge.frames_per_step", lambda v: v is None or (_number(v) and v > 0), "null or a number > 0"),
+    ("callbacks.slam_bridge.feed_until", lambda v: _number(v) and 0 < v <= 1, "a fraction in (0, 1]"),
     ("callbacks.slam_bridge.min_initial_keyframes", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
 ]
 
@@ -78,6 +100,13 @@ def make_sequence(data_cfg: DictConfig):
     node = OmegaConf.to_container(data_cfg, resolve=True)
     stress = node.pop("stress", None)
     sequence = instantiate(node)
+    cam, native = sequence.camera, getattr(sequence, "native_camera", sequence.camera)
+    if cam.width < 1 or cam.height < 1:
+        raise ConfigError(f"config key data.downscale={node.get('downscale')!r} is out of range: the {native.width}x{native.height} "
+                          f"images would be {cam.width}x{cam.height}; expected at most {min(native.width, native.height)}")  # fmt: skip
+    if getattr(sequence, "dropped", 0):
+        log.warning("data: %d of the frames listed in %s are left out (no depth / right image matches them); "
+                    "metrics.json counts them in frames_dropped", sequence.dropped, node.get("root", "the sequence"))  # fmt: skip
     if stress:
         from segs.data.stress import apply_stress
 
@@ -89,13 +118,49 @@ def make_sequence(data_cfg: DictConfig):
 
 
 def validate(cfg: DictConfig) -> None:
-    """Raise ConfigError naming the first out-of-range key; the model checks its own keys."""
+    """Raise ConfigError naming the first bad key; the model checks its own keys when built.
+
+    Checks, before anything runs: every number of the config is finite, the keys of _CHECKS,
+    raster.far > raster.near, and that raster.backend=cuda can run here.
+    """
+    _check_finite(cfg)
     for key, ok, expected in _CHECKS:
         value = OmegaConf.select(cfg, key, default="__absent__")
         if isinstance(value, str) and value == "__absent__":
             continue
         if not ok(value):
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
+    near, far = OmegaConf.select(cfg, "raster.near", default=None), OmegaConf.select(cfg, "raster.far", default=None)
+    if near is not None and far is not None and not (_number(far) and far > near):
+        raise ConfigError(f"config key raster.far={far!r} is out of range: expected a number > raster.near={near!r}")
+    if OmegaConf.select(cfg, "raster.backend", default=None) == "cuda":
+        from segs.raster._cuda_backend import unavailable_reason
+
+        why = unavailable_reason()
+        if why is None and OmegaConf.select(cfg, "trainer.accelerator", default="auto") == "cpu":
+            why = "trainer.accelerator=cpu keeps the map on the CPU"
+        if why is not None:
+            raise ConfigError(f"config key raster.backend='cuda' cannot run here: {why}; use raster.backend=auto")
+
+
+def _check_finite(cfg: DictConfig) -> None:
+    """ConfigError naming the first number of the config (hydra node aside) that is inf or NaN."""
+    try:
+        tree = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), resolve=True)
+    except Exception as err:  # noqa: BLE001 - an interpolation that cannot resolve
+        raise ConfigError(f"config: {str(err).splitlines()[0]}") from None
+
+    def walk(node, key: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{key}.{k}" if key else str(k))
+        elif isinstance(node, list):
+            for i, v in enumerate(node):
+                walk(v, f"{key}[{i}]")
+        elif isinstance(node, float) and not math.isfinite(node):
+            raise ConfigError(f"config key {key}={node!r} is out of range: expected a finite number")
+
+    walk(tree, "")
 
 
 @contextlib.contextmanager

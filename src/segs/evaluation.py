@@ -9,25 +9,22 @@ from __future__ import annotations
 
 import json
 import logging
+import contextlib
 import os
-import resource
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from segs.callbacks.memory import peak_rss_mb
 from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.modules.scene_model import View
 from segs.trajectory import ate, estimated_c2w, write_tum
 
 log = logging.getLogger(__name__)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MB (Linux reports KB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def lost_ranges(lost: list[int]) -> list[list[int]]:
@@ -42,9 +39,15 @@ def lost_ranges(lost: list[int]) -> list[list[int]]:
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
+    """path written whole or not at all (a failed or interrupted write leaves no .tmp)."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
@@ -54,19 +57,28 @@ def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
 
 
 def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int, out: Path,
-                      progress: bool = True, active_threshold: float = 0.005) -> dict:  # fmt: skip
-    """Render every test frame at its estimated pose; returns the mean metrics and writes renders."""
+                      progress: bool = True, active_threshold: float = 0.005, watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
+    """Render every test frame at its estimated pose; returns the mean metrics and writes renders.
+
+    watch: called with "at test view N" before each view (the memory guard's check)."""
     lpips = make_lpips(lpips_weights)
+    lossless = getattr(sequence, "lossless_rgb", None)  # idx -> lossless colour or None
     keep = set(np.asarray(test)[np.linspace(0, len(test) - 1, save_renders).round().astype(int)]) if test and save_renders else set()
     (out / "renders").mkdir(parents=True, exist_ok=True)
     rows = []
     for idx in tqdm(test, desc="test views", disable=not progress, leave=False):
+        if watch is not None:
+            watch(f"at test view {idx}")
         frame = sequence[idx]
         gt = torch.from_numpy(np.ascontiguousarray(frame.rgb))
         render = module.render_image(trajectory[idx], frame.camera)["image"]
         view = View(torch.as_tensor(trajectory[idx], dtype=torch.float32), frame.camera)
         row = {"frame": idx, "psnr": psnr(render, gt), "ssim": ssim(render, gt), "lpips": lpips(render, gt) if lpips else None,
                "active": module.model.count_active(view, active_threshold)}  # fmt: skip
+        clean = lossless(idx) if lossless is not None else None
+        if clean is not None:  # the same frame without compression (7-Scenes frames 150-199)
+            clean = torch.from_numpy(np.ascontiguousarray(clean))
+            row["psnr_lossless"], row["psnr_jpeg_vs_lossless"] = psnr(render, clean), psnr(gt, clean)
         rows.append(row)
         if idx in keep:
             _save_pair(out / "renders" / f"test_{idx:05d}.png", render, frame.rgb)
@@ -76,54 +88,97 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
             lp = "" if r["lpips"] is None else f"{r['lpips']:.5f}"
             f.write(f"{r['frame']},{r['psnr']:.4f},{r['ssim']:.5f},{lp}\n")
     mean = lambda k: float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None  # noqa: E731
-    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows),
-            "active_gaussians": mean("active")}  # fmt: skip
+    out = {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows),
+           "active_gaussians": mean("active")}  # fmt: skip
+    clean = [r for r in rows if "psnr_lossless" in r]
+    if clean:  # PSNR against lossless frames, beside the same views' PSNR against the JPEGs
+        out.update({"lossless_views": len(clean), "psnr_lossless": float(np.mean([r["psnr_lossless"] for r in clean])),
+                    "psnr_jpeg_on_lossless_views": float(np.mean([r["psnr"] for r in clean])),
+                    "psnr_jpeg_vs_lossless": float(np.mean([r["psnr_jpeg_vs_lossless"] for r in clean]))})
+    return out
 
 
-def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict) -> dict:
-    """Compute and write every result file of a run; returns the metrics dict."""
-    out.mkdir(parents=True, exist_ok=True)
+def run_summary(module, sequence, bridge, timing: dict) -> dict:
+    """The numbers of a run that need no rendering: time, tracking, keyframes, model size.
+
+    timing: {"steps", "fit_s", "wall_s"} summed over every session of the run (resumes included).
+    """
     frontend = bridge.frontend
     trajectory = frontend.trajectory()
-    test = bridge.test_frames()
-    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)),
-                               out, bool(eval_cfg.get("progress", True)), float(eval_cfg.get("active_opacity", 0.005)))  # fmt: skip
-    idx, c2w = estimated_c2w(trajectory)
-    write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
-    ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))
-    counts = module.model.counts()
-    if eval_cfg.get("write_ply", True) and len(module.store):
-        kf = module.store[min(module.store.frames)]
-        module.model.export_ply(out / "point_cloud.ply", View(kf.w2c, kf.camera, kf.kf_id))
     lost = frontend.lost_frames()
+    counts = module.model.counts()
     steps = timing.get("steps", 0)
-    metrics = {
-        **images,
-        "lpips_note": None if images["lpips"] is not None else "n/a: no AlexNet weights file (eval.lpips_weights)",
-        "ate_rmse_m": ate_result["rmse"],
-        "ate": ate_result,
+    dropped = int(getattr(sequence, "dropped", 0) or 0)
+    summary = {
         "iterations": steps,
         "wall_time_s": timing.get("wall_s"),
         "mapping_time_s": timing.get("fit_s"),
         "iterations_per_s": steps / timing["fit_s"] if timing.get("fit_s") else None,
         "iteration_ms_median": float(np.median(module.iteration_ms)) if module.iteration_ms else None,
+        "sessions": timing.get("sessions", 1),
         "tracking_fps": bridge.tracking_fps(),
         "frames": len(sequence),
+        "frames_dropped": dropped,
         "frames_tracked": len(trajectory),
         "tracked_fraction": len(trajectory) / max(len(sequence), 1),
         "lost_frames": len(lost),
         "lost_ranges": lost_ranges(lost),
         "keyframes": len(frontend.keyframe_frames()),
         "training_views": len(module.store),
+        "held_out_points": bridge.held_out_points,
         "anchors": int(counts["anchors"]),
         "gaussians": int(counts["gaussians"]),
         "params": int(counts["params"]),
         "model_mb": float(counts["mb"]),
         "peak_rss_mb": peak_rss_mb(),
+    }
+    if dropped:
+        summary["frames_note"] = (f"{dropped} frames listed by the dataset were left out when it was read (no depth / right "
+                                  "image within the association tolerance); frames counts the ones used")  # fmt: skip
+    return summary
+
+
+def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict, notes: dict | None = None,
+             watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
+    """Compute and write every result file of a run; returns the metrics dict (metrics.json, last).
+
+    notes: extra entries for metrics.json (e.g. why the final checkpoint is missing);
+    watch: called before each test view (memory guard)."""
+    out.mkdir(parents=True, exist_ok=True)
+    frontend = bridge.frontend
+    trajectory = frontend.trajectory()
+    test = bridge.test_frames()
+    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)),
+                               out, bool(eval_cfg.get("progress", True)), float(eval_cfg.get("active_opacity", 0.005)), watch)  # fmt: skip
+    idx, c2w = estimated_c2w(trajectory)
+    write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
+    ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))
+    if eval_cfg.get("write_ply", True) and len(module.store):
+        kf = module.store[min(module.store.frames)]
+        module.model.export_ply(out / "point_cloud.ply", View(kf.w2c, kf.camera, kf.kf_id))
+    summary = run_summary(module, sequence, bridge, timing)
+    metrics = {
+        **images,
+        "lpips_note": None if images["lpips"] is not None else "n/a: no AlexNet weights file (eval.lpips_weights)",
+        "ate_rmse_m": ate_result["rmse"],
+        "ate": ate_result,
+        **summary,
+        **(notes or {}),
         "status": "finished",
     }
-    if lost:
-        metrics["ate_note"] = f"{len(lost)} untracked frames have no pose and are excluded from ATE and test views"
+    if summary["lost_frames"]:
+        metrics["ate_note"] = f"{summary['lost_frames']} untracked frames have no pose and are excluded from ATE and test views"
+    write_json_atomic(out / "metrics.json", metrics)
+    return metrics
+
+
+def write_not_evaluated(module, sequence, bridge, out: Path, timing: dict, notes: dict | None = None) -> dict:
+    """metrics.json of a run trained with eval.enabled=false (status "not_evaluated"): the run's
+    numbers without any test-view or trajectory metric."""
+    out.mkdir(parents=True, exist_ok=True)
+    none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
+    metrics = {**none, "test_views": 0, **run_summary(module, sequence, bridge, timing), **(notes or {}), "status": "not_evaluated",
+               "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed"}  # fmt: skip
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
 

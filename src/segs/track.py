@@ -20,10 +20,9 @@ import time
 from pathlib import Path
 
 import hydra
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from segs.config import user_errors_exit, validate
+from segs.config import instantiate, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
 from segs.slam.runner import run_sequence
 from segs.trajectory import ate, estimated_c2w, write_tum
@@ -53,7 +52,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     validate(cfg)
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    sequence = instantiate(cfg.data)
+    sequence = make_sequence(cfg.data)
     if len(sequence) == 0:
         raise DataError(f"data: the sequence at {cfg.data.get('root', '?')} has no frames")
     frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
@@ -91,6 +90,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         "sequence": getattr(sequence, "name", ""),
         "sensor": sequence.sensor,
         "frames": n,
+        "frames_dropped": int(getattr(sequence, "dropped", 0) or 0),  # listed by the dataset, left out when read
         "frames_tracked": len(traj),
         "tracked_fraction": len(traj) / n,
         "lost_frames": len(lost),

@@ -15,12 +15,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from segs.callbacks.memory import MemoryGuard
 from segs.data.frame import Frame, Sequence
 from segs.errors import TrackingFailed
 from segs.modules.keyframes import Keyframe, to_uint8
 from segs.slam.base import Frontend, MapUpdate
 
 log = logging.getLogger(__name__)
+
+WATCH_EVERY_FRAMES = 10  # memory check interval while tracking outside training steps
 
 
 class SlamBridge(L.Callback):
@@ -30,7 +33,8 @@ class SlamBridge(L.Callback):
         (the frames after the initial keyframes are spread evenly over those steps), as if the
         camera streamed in real time beside training; frames_per_step, when set, replaces it.
     min_initial_keyframes: mapping starts when the frontend has made this many keyframes.
-    holdout_every: frames with index % n == 0 never become training views (0 = off).
+    holdout_every: frames with index % n == 0 never become training views, and the map points
+        their keyframes create never reach the mapper (counted in held_out_points); 0 = off.
     """
 
     def __init__(self, sequence: Sequence, frontend: Frontend, feed_until: float = 0.2,
@@ -50,14 +54,22 @@ class SlamBridge(L.Callback):
         self._restored = False
         self.process_seconds = 0.0
         self.processed = 0
+        self.held_out_points = 0  # SLAM points created by held-out keyframes, never given to the mapper
+        self._watch = None  # memory check called while tracking: where -> None (raises LimitError)
 
     # -- Lightning hooks ------------------------------------------------------------------------
     def on_train_start(self, trainer, pl_module) -> None:
+        guard = next((c for c in trainer.callbacks if isinstance(c, MemoryGuard)), None)
+        if guard is not None:  # nothing trained before mapping starts (after fit: final.ckpt exists)
+            self._watch = lambda where: guard.check(trainer, where, save=False)
         if self._restored:
             return
         bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
+        # also wait for the first map points: the ORB frontend hands them over once they have
+        # survived culling over a few keyframes
         while self.cursor < len(self.sequence) and (
             len(self.frontend.keyframe_frames()) < self.min_initial_keyframes or len(pl_module.store) == 0
+            or pl_module.model.counts()["gaussians"] == 0
         ):
             self._feed_one()
             self._push(self.frontend.poll(), pl_module)
@@ -100,6 +112,8 @@ class SlamBridge(L.Callback):
         self.process_seconds += time.perf_counter() - t0
         self.processed += 1
         self.cursor += 1
+        if self._watch is not None and self.cursor % WATCH_EVERY_FRAMES == 0:
+            self._watch(f"while tracking frame {frame.index}")
 
     def _finish(self) -> MapUpdate:
         self.finished = True
@@ -146,12 +160,23 @@ class SlamBridge(L.Callback):
             module.update_poses({k: torch.as_tensor(v, dtype=torch.float32) for k, v in update.poses.items()})
         if update.corrections:
             module.correct_map({k: torch.as_tensor(v, dtype=torch.float32) for k, v in update.corrections.items()})
-        if len(update.points):
+        keep = self._mappable_points(update.point_kf, kf_frames)
+        if keep.any():
             module.add_points(
-                torch.as_tensor(update.points, dtype=torch.float32),
-                torch.as_tensor(update.colors, dtype=torch.float32),
-                torch.as_tensor(update.point_kf, dtype=torch.int64),
+                torch.as_tensor(update.points[keep], dtype=torch.float32),
+                torch.as_tensor(update.colors[keep], dtype=torch.float32),
+                torch.as_tensor(update.point_kf[keep], dtype=torch.int64),
             )
+
+    def _mappable_points(self, point_kf: np.ndarray, kf_frames: dict[int, int]) -> np.ndarray:
+        """[M] bool: points not created by a held-out keyframe (their depth / colour come from a
+        test frame, which the map must not see); the others are counted in held_out_points."""
+        held = set(self.held_out_keyframes)
+        if self.holdout_every:
+            held |= {k for k, i in kf_frames.items() if i % self.holdout_every == 0}
+        keep = ~np.isin(np.asarray(point_kf, dtype=np.int64), np.fromiter(held, np.int64, len(held)))
+        self.held_out_points += int((~keep).sum())
+        return keep
 
     @staticmethod
     def _keyframe(kf_id: int, frame: Frame, w2c: np.ndarray) -> Keyframe:
@@ -191,6 +216,9 @@ class SlamBridge(L.Callback):
             "finished": self.finished,
             "trained_frames": dict(self.trained_frames),
             "held_out_keyframes": list(self.held_out_keyframes),
+            "held_out_points": self.held_out_points,
+            "process_seconds": self.process_seconds,
+            "processed": self.processed,
             "frontend": self.frontend.state_dict(),
         }
 
@@ -199,5 +227,8 @@ class SlamBridge(L.Callback):
         self.frames_per_step = state["frames_per_step"]
         self.trained_frames = {int(k): int(v) for k, v in state["trained_frames"].items()}
         self.held_out_keyframes = list(state["held_out_keyframes"])
+        self.held_out_points = int(state.get("held_out_points", 0))
+        # tracking speed over every session (checkpoints older than this field: this session only)
+        self.process_seconds, self.processed = float(state.get("process_seconds", 0.0)), int(state.get("processed", 0))
         self.frontend.load_state_dict(state["frontend"])
         self._restored = True

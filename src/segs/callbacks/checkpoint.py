@@ -1,6 +1,7 @@
 """Periodic checkpoints written atomically (temporary file + rename)."""
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -8,12 +9,21 @@ import lightning as L
 
 
 def save_atomic(trainer: L.Trainer, path: str | Path) -> Path:
-    """trainer.save_checkpoint to path via a temporary file, so a kill leaves the old file intact."""
+    """trainer.save_checkpoint to path via a temporary file, so a kill leaves the old file intact.
+
+    A write that fails or is interrupted (disk full, read-only folder, a second Ctrl-C) removes
+    its temporary file and re-raises; only kill -9 can leave `<path>.tmp` behind.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    trainer.save_checkpoint(str(tmp))
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        trainer.save_checkpoint(str(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

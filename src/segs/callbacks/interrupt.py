@@ -1,16 +1,28 @@
-"""Ctrl-C / SIGTERM stop training at the next step boundary, after writing a resumable checkpoint.
+"""Ctrl-C / SIGTERM: stop cleanly, keep the work done so far, never a traceback.
 
-The first signal sets a flag; the step in progress finishes, then the callback writes
-checkpoints/last.ckpt (atomically: model, optimizer, keyframes, SLAM map and trajectory, step,
-RNG states) and trajectory_partial.txt, prints how to resume and stops the trainer; segs.train
-then exits with 130 (SIGINT) or 143 (SIGTERM). A second signal restores the default behaviour.
+segs.train installs the handlers for the whole run (`with interrupt:`); used as a plain Lightning
+callback they are installed for the duration of fit. What a first signal does depends on the
+phase the run is in:
+
+- "step" (training): the step in progress finishes, then checkpoints/last.ckpt (atomically:
+  model, optimizer, keyframes, SLAM map and trajectory, step, RNG states) and
+  trajectory_partial.txt are written, the resume command is printed and the trainer stops;
+  segs.train exits with 130 (SIGINT) or 143 (SIGTERM).
+- "defer" (writing the final checkpoint): the write finishes, then the run stops the same way.
+- "now" (tracking the rest, evaluating): :class:`Interrupted` is raised at once; segs.train
+  prints one line and exits 130 / 143 without writing metrics.json.
+
+A second signal always raises :class:`Interrupted` at once (an atomic checkpoint write in progress
+removes its temporary file, the previous checkpoint stays intact).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import signal
 import sys
 from pathlib import Path
+from typing import Iterator
 
 import lightning as L
 
@@ -19,36 +31,81 @@ from segs.callbacks.checkpoint import save_atomic
 log = logging.getLogger(__name__)
 
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
+PHASES = ("step", "defer", "now")
+
+
+class Interrupted(BaseException):
+    """A signal stopped the run where no step boundary could be waited for.
+
+    BaseException like KeyboardInterrupt (so `except Exception` does not swallow it), but not a
+    KeyboardInterrupt: Lightning turns that one into exit status 1."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+        self.code = EXIT_CODES.get(signum, 1)
 
 
 class GracefulInterrupt(L.Callback):
-    """Installs SIGINT / SIGTERM handlers for the duration of fit."""
+    """SIGINT / SIGTERM handlers with a phase-dependent first signal (see the module doc)."""
 
     def __init__(self, dirpath: str | None = None):
         self.dirpath = dirpath
         self.received: int | None = None
-        self._previous: dict[int, object] = {}
+        self.phase = "step"
         self.checkpoint: Path | None = None
+        self._previous: dict[int, object] = {}
+        self._owner: str | None = None  # "run" (context manager) or "fit" (Lightning hooks)
 
     def _handler(self, signum, frame) -> None:
-        if self.received is not None:  # second signal: give the user the default behaviour back
-            self._restore()
-            signal.raise_signal(signum)
+        first = self.received is None
+        if first:
+            self.received = signum
+        if not first or self.phase == "now":
+            raise Interrupted(signum)
+        when = "this step" if self.phase == "step" else "the checkpoint is written"
+        print(f"\nsegs: {signal.Signals(signum).name} received, stopping after {when} (again to abort)", file=sys.stderr)
+
+    # -- installing the handlers -----------------------------------------------------------------
+    def install(self, owner: str) -> None:
+        if self._owner is not None:
             return
-        self.received = signum
-        print(f"\nsegs: {signal.Signals(signum).name} received, stopping after this step (again to abort)", file=sys.stderr)
+        try:
+            for sig in EXIT_CODES:
+                self._previous[sig] = signal.signal(sig, self._handler)
+            self._owner = owner
+        except ValueError:  # not the main thread (e.g. some launchers): signals stay as they are
+            self._restore()
 
     def _restore(self) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
-        self._previous = {}
+        self._previous, self._owner = {}, None
 
-    def on_fit_start(self, trainer, pl_module) -> None:
+    def __enter__(self) -> "GracefulInterrupt":
+        self.install("run")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._owner == "run":
+            self._restore()
+
+    @contextlib.contextmanager
+    def in_phase(self, phase: str) -> Iterator[None]:
+        """Handle a first signal as `phase` ("step", "defer" or "now") inside the block."""
+        if phase not in PHASES:
+            raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
+        before, self.phase = self.phase, phase
         try:
-            for sig in EXIT_CODES:
-                self._previous[sig] = signal.signal(sig, self._handler)
-        except ValueError:  # not the main thread (e.g. some launchers): signals stay as they are
-            self._previous = {}
+            if phase == "now" and self.received is not None:
+                raise Interrupted(self.received)
+            yield
+        finally:
+            self.phase = before
+
+    # -- Lightning hooks -------------------------------------------------------------------------
+    def on_fit_start(self, trainer, pl_module) -> None:
+        self.install("fit")
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self.received is None or trainer.should_stop:
@@ -70,10 +127,12 @@ class GracefulInterrupt(L.Callback):
         trainer.should_stop = True
 
     def on_fit_end(self, trainer, pl_module) -> None:
-        self._restore()
+        if self._owner == "fit":
+            self._restore()
 
     def on_exception(self, trainer, pl_module, exception) -> None:
-        self._restore()
+        if self._owner == "fit":
+            self._restore()
 
     @property
     def exit_code(self) -> int | None:

@@ -71,6 +71,39 @@ def resize_frame(frame: Frame, camera: Camera) -> Frame:
     return replace(frame, rgb=image(frame.rgb), right=image(frame.right), depth=depth, camera=camera)
 
 
+class DepthRegistration:
+    """Depth of a separate depth camera mapped into the colour camera (unregistered RGB-D sensors).
+
+    depth_intrinsics: [fx, fy, cx, cy] of the native depth image; depth_to_color: the rigid
+    transform taking depth-camera coordinates to colour-camera coordinates, as 6 numbers
+    [rx, ry, rz, tx, ty, tz] (rotation vector in radians, translation in metres; null: identity).
+    Registration (cv2.registerDepth) back-projects every depth pixel, moves it into the colour
+    camera and keeps the nearest depth per colour pixel (0 where none lands).
+    """
+
+    def __init__(self, depth_intrinsics, depth_to_color=None, key: str = "data"):
+        fx, fy, cx, cy = pinhole(numbers(depth_intrinsics, (4,), f"{key}.depth_intrinsics"), f"{key}.depth_intrinsics")
+        self.K_depth = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        self.T = np.eye(4)
+        v = numbers(depth_to_color, (6,), f"{key}.depth_to_color")
+        if v is not None:
+            self.T[:3, :3] = cv2.Rodrigues(v[:3].reshape(3, 1))[0]
+            self.T[:3, 3] = v[3:]
+
+    def register(self, depth: np.ndarray, color: Camera) -> np.ndarray:
+        """depth [H,W] float32 metres (depth camera) -> [color.height, color.width] float32 (colour camera)."""
+        if np.array_equal(self.T, np.eye(4)) and np.array_equal(self.K_depth, color.K) \
+                and depth.shape == (color.height, color.width):
+            return depth  # already registered (same camera)
+        out = cv2.registerDepth(self.K_depth, color.K, None, self.T, np.ascontiguousarray(depth, np.float32),
+                                (color.width, color.height))
+        return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def color_poses(self, depth_c2w: np.ndarray) -> np.ndarray:
+        """Camera-to-world poses of the depth camera [N,4,4] -> those of the colour camera [N,4,4]."""
+        return depth_c2w @ np.linalg.inv(self.T)
+
+
 def gt_pose(gt_poses: np.ndarray | None, index: int) -> np.ndarray | None:
     """Copy of the [4,4] ground-truth pose of a frame, None when absent or NaN."""
     if gt_poses is None or np.isnan(gt_poses[index]).any():

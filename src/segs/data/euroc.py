@@ -37,6 +37,8 @@ class EurocCamera:
     T_BS: np.ndarray
 
 
+MIN_BASELINE_M = 1e-3  # cam0-cam1 distance below which a pair is not a stereo rig
+
 def _field(data: dict, key: str, n: int, path: Path) -> np.ndarray:
     value = data.get(key)
     if isinstance(value, dict):
@@ -171,6 +173,9 @@ class EurocSequence(ReaderSequence):
 
     def _rectify(self, left: EurocCamera, right: EurocCamera, downscale: float) -> None:
         T_rl = np.linalg.inv(right.T_BS) @ left.T_BS  # cam0 coordinates -> cam1 coordinates
+        if not np.linalg.norm(T_rl[:3, 3]) > MIN_BASELINE_M:
+            raise DataError(f"{self.mav / 'cam1' / 'sensor.yaml'}: T_BS puts cam1 {np.linalg.norm(T_rl[:3, 3]):.4f} m from cam0; "
+                            f"a stereo pair needs a baseline > {MIN_BASELINE_M} m")  # fmt: skip
         R1, R2, P1, P2, *_ = cv2.stereoRectify(left.K, left.dist, right.K, right.dist, left.size,
                                                T_rl[:3, :3].copy(), T_rl[:3, 3:4].copy(),
                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
@@ -178,6 +183,9 @@ class EurocSequence(ReaderSequence):
         self._maps = [cv2.initUndistortRectifyMap(c.K, c.dist, R, P, left.size, cv2.CV_32FC1)
                       for c, R, P in ((left, R1, P1), (right, R2, P2))]
         baseline = float(-P2[0, 3] / P2[0, 0])
+        if not baseline > 0:  # cam1 must be the right camera after rectification
+            raise DataError(f"{self.mav / 'cam1' / 'sensor.yaml'}: rectified baseline {baseline:.4f} m; expected cam1 "
+                            "to the right of cam0 (> 0)")  # fmt: skip
         fx, fy, cx, cy = (float(v) for v in (P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2]))
         self.set_camera(Camera(fx, fy, cx, cy, *left.size, baseline), downscale)
 

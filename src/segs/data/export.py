@@ -1,4 +1,4 @@
-"""Write a sequence to disk in the TUM RGB-D or NICE-SLAM Replica layout.
+"""Write a sequence to disk in the TUM RGB-D, NICE-SLAM Replica or 7-Scenes layout.
 
 Used to build test fixtures from :class:`segs.data.synthetic.SyntheticSequence` and to hand
 synthetic data to external tools. Colour is written as 8-bit (PNG for TUM, JPEG or PNG for
@@ -14,6 +14,7 @@ import numpy as np
 from segs.data.frame import Sequence
 from segs.data.poses import matrix_to_quat
 from segs.data.replica import DEPTH_SCALE as REPLICA_SCALE
+from segs.data.seven_scenes import DEPTH_SCALE as SEVEN_SCENES_SCALE
 from segs.data.tum import DEPTH_SCALE as TUM_SCALE
 
 
@@ -67,4 +68,24 @@ def write_replica(seq: Sequence, folder: str | Path, frames=None, ext: str = "jp
             cv2.imwrite(str(folder / "results" / f"depth{k:06d}.png"), _depth16(f.depth, REPLICA_SCALE))
         traj.append(" ".join(f"{v:.12g}" for v in f.pose_c2w.reshape(-1)))
     (folder / "traj.txt").write_text("\n".join(traj) + "\n")
+    return folder
+
+
+def write_seven_scenes(seq: Sequence, folder: str | Path, frames=None, ext: str = "png") -> Path:
+    """frame-NNNNNN.color.<ext>, .depth.png (millimetres) and .pose.txt (4x4 c2w) in `folder`.
+
+    The camera is written to folder/camera-intrinsics.txt; depth is registered to it, so reading
+    the folder back needs the same intrinsics for colour and a zero depth_to_color.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, i in enumerate(range(len(seq)) if frames is None else frames):
+        f = seq[i]
+        stem = folder / f"frame-{k:06d}"
+        cv2.imwrite(f"{stem}.color.{ext}", _bgr8(f.rgb))
+        if f.depth is not None:
+            cv2.imwrite(f"{stem}.depth.png", _depth16(f.depth, SEVEN_SCENES_SCALE))
+        if f.pose_c2w is not None:
+            np.savetxt(f"{stem}.pose.txt", f.pose_c2w, fmt="%.12e")
+    np.savetxt(folder / "camera-intrinsics.txt", seq.camera.K, fmt="%.12e")
     return folder

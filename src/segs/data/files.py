@@ -72,6 +72,8 @@ def to_int(token: str, path: Path, lineno: int, what: str = "integer") -> int:
     """A non-negative integer (e.g. nanoseconds), or DataError naming file and line."""
     if not token.isdigit() or not token.isascii():
         raise DataError(f"{path}:{lineno}: expected a non-negative {what}, got {_show(token)}")
+    if int(token) > np.iinfo(np.int64).max:
+        raise DataError(f"{path}:{lineno}: {what} {_show(token)} is out of range (>= 2^63)")
     return int(token)
 
 
@@ -113,9 +115,50 @@ def check_files_exist(folder: Path, names: list[str], index: Path, linenos: list
     return paths
 
 
+def jpeg_is_complete(data: bytes) -> bool:
+    """Whether a JPEG byte stream reaches its end-of-image marker (FFD9) through its segments.
+
+    libjpeg decodes a truncated file as far as the data goes, fills the rest with grey and only
+    warns on stderr, so OpenCV returns a half-grey image as if nothing were wrong. This walks the
+    marker segments (lengths skipped, so EXIF thumbnails do not count) and the entropy-coded data
+    of each scan (where FF is followed by 00 or a restart marker); data after FFD9 is ignored.
+    """
+    n, pos = len(data), 2
+    while pos < n:
+        pos = data.find(b"\xff", pos)  # garbage between segments is skipped, as libjpeg does
+        if pos < 0:
+            return False
+        while pos < n and data[pos] == 0xFF:  # fill bytes
+            pos += 1
+        if pos >= n:
+            return False
+        marker, pos = data[pos], pos + 1
+        if marker == 0xD9:
+            return True
+        if 0xD0 <= marker <= 0xD7 or marker in (0x00, 0x01):  # no length field
+            continue
+        if pos + 2 > n:
+            return False
+        pos += int.from_bytes(data[pos : pos + 2], "big")
+        if marker == 0xDA:  # start of scan: entropy-coded data up to the next real marker
+            while (pos := data.find(b"\xff", pos)) >= 0 and pos + 1 < n and (data[pos + 1] == 0 or 0xD0 <= data[pos + 1] <= 0xD7):
+                pos += 2
+            if pos < 0 or pos + 1 >= n:
+                return False
+    return False
+
+
 def _imread(path: Path) -> np.ndarray:
+    """Decode an image file as stored (OpenCV); DataError naming the file when it is missing,
+    unreadable, corrupt or a truncated JPEG (which OpenCV would return half grey)."""
     try:
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        data = Path(path).read_bytes()
+    except OSError:
+        data = b""
+    if data[:2] == b"\xff\xd8" and not jpeg_is_complete(data):
+        raise DataError(f"{path}: truncated JPEG (the data ends before the end-of-image marker)")
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     except cv2.error:
         img = None
     if img is None:

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from segs.data.base import ReaderSequence, check_sensor, gt_pose, numbers, pinhole
+from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, gt_pose, numbers, pinhole
 from segs.data.files import (check_files_exist, check_increasing, image_shape, read_depth,
                              read_numeric, read_rgb, read_timestamped_paths, require_dir)
 from segs.data.frame import Camera, Frame
@@ -82,6 +82,11 @@ class TumSequence(ReaderSequence):
         max_difference: rgb-depth association tolerance in seconds (TUM: 0.02).
         gt_max_difference: ground-truth interpolation / nearest tolerance in seconds.
         depth_scale: depth PNG units per metre (TUM: 5000).
+        depth_intrinsics, depth_to_color: for depth NOT registered to the colour camera (TUM's is):
+            the depth camera's [fx, fy, cx, cy] and the depth->colour transform
+            [rx, ry, rz, tx, ty, tz]; the depth is then registered into the colour camera and the
+            ground truth, taken as the depth camera's, is moved to the colour camera
+            (segs.data.base.DepthRegistration). Both null: depth used as is.
     Attributes: dropped = colour frames left out for lack of a depth partner; frame timestamps
     are the rgb.txt timestamps; gt_poses [N,4,4] c2w (NaN where no ground truth) or None.
     """
@@ -89,7 +94,8 @@ class TumSequence(ReaderSequence):
     def __init__(self, root: str | Path, sensor: str = "rgbd", downscale: float = 1,
                  intrinsics=None, distortion=None, freiburg: int | None = None,
                  max_difference: float = 0.02, gt_max_difference: float = 0.1,
-                 depth_scale: float = DEPTH_SCALE, name: str | None = None):
+                 depth_scale: float = DEPTH_SCALE, depth_intrinsics=None, depth_to_color=None,
+                 name: str | None = None):
         self.root = require_dir(root, "TUM sequence folder")
         has_depth = (self.root / "depth.txt").is_file()
         check_sensor(sensor, {"mono": None, "rgbd": None if has_depth else "no depth.txt",
@@ -97,6 +103,11 @@ class TumSequence(ReaderSequence):
         self.sensor, self.name = sensor, name or self.root.resolve().name
         self.depth_scale = float(depth_scale)
         self._index(float(max_difference))
+        self.registration = None
+        if depth_intrinsics is not None or depth_to_color is not None:
+            if depth_intrinsics is None:
+                raise ConfigError("data.depth_to_color needs data.depth_intrinsics (the depth camera's [fx, fy, cx, cy])")
+            self.registration = DepthRegistration(depth_intrinsics, depth_to_color, "data")
         self._ground_truth(float(gt_max_difference))
         self._calibrate(intrinsics, distortion, freiburg, downscale)
 
@@ -127,6 +138,8 @@ class TumSequence(ReaderSequence):
         if path.is_file():
             gt_times, gt = read_tum_trajectory(path)
             self.gt_poses = interpolate_poses(gt_times, gt, self.timestamps, max_difference)
+            if self.registration is not None:
+                self.gt_poses = self.registration.color_poses(self.gt_poses)
 
     def _calibrate(self, intrinsics, distortion, freiburg, downscale) -> None:
         if freiburg is not None and freiburg not in FREIBURG:
@@ -160,6 +173,8 @@ class TumSequence(ReaderSequence):
         depth = None
         if self.depth_paths is not None:
             depth = read_depth(self.depth_paths[index], self.depth_scale, self.shape)
+            if self.registration is not None:
+                depth = self.registration.register(depth, self.native_camera)
             depth = self._undistort(depth, cv2.INTER_NEAREST)
         path = self.rgb_paths[index]
         name = str(path.relative_to(self.root) if path.is_relative_to(self.root) else path)

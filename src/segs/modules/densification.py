@@ -50,8 +50,9 @@ class AnchorDensifier(nn.Module):
             setattr(self, name, getattr(self, name)[mask])
 
     def resize_(self, n: int) -> None:
-        self.opacity_accum, self.anchor_visits = torch.zeros(n), torch.zeros(n)
-        self.grad_accum, self.grad_visits = torch.zeros(n, self.k), torch.zeros(n, self.k)
+        dev = self.opacity_accum.device
+        self.opacity_accum, self.anchor_visits = torch.zeros(n, device=dev), torch.zeros(n, device=dev)
+        self.grad_accum, self.grad_visits = torch.zeros(n, self.k, device=dev), torch.zeros(n, self.k, device=dev)
 
     @torch.no_grad()
     def record(self, info: DecodeInfo, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int, height: int) -> None:

@@ -91,7 +91,7 @@ class PrimitiveParams(nn.Module):
         if len(m) != 1:
             raise ValueError(f"rows of different lengths: { {k: v.shape for k, v in rows.items()} }")
         for k, old in list(self.params.items()):
-            extra = rows[k].detach().to(old.dtype)
+            extra = rows[k].detach().to(device=old.device, dtype=old.dtype)
             new = nn.Parameter(torch.cat([old.detach(), extra], 0))
             _swap(optimizer, old, new, lambda v, e=extra: torch.cat([v, torch.zeros_like(e)], 0))
             self.params[k] = new
@@ -116,4 +116,4 @@ class PrimitiveParams(nn.Module):
     def resize_(self, n: int) -> None:
         """Re-create empty tensors of length n (before load_state_dict of a checkpoint)."""
         for k, s in self.shapes.items():
-            self.params[k] = nn.Parameter(torch.zeros((n, *s)))
+            self.params[k] = nn.Parameter(torch.zeros((n, *s), device=self.params[k].device))

@@ -91,10 +91,10 @@ class PlainGaussians(SceneModel):
         rows = {
             "means": xyz,
             "log_scales": torch.log(torch.sqrt(d2)).unsqueeze(1).repeat(1, 3),
-            "quats": torch.tensor([1.0, 0, 0, 0]).repeat(m, 1),
-            "opacities": torch.full((m, 1), _logit(self.init_opacity)),
+            "quats": torch.tensor([1.0, 0, 0, 0], device=xyz.device).repeat(m, 1),
+            "opacities": torch.full((m, 1), _logit(self.init_opacity), device=xyz.device),
             "sh_dc": rgb_to_sh_dc(rgb).unsqueeze(1),
-            "sh_rest": torch.zeros(m, self.gs.shapes["sh_rest"][0], 3),
+            "sh_rest": torch.zeros(m, self.gs.shapes["sh_rest"][0], 3, device=xyz.device),
         }
         self.gs.extend(rows, optimizer)
         self._extend_buffers(kf_ids.to(torch.int64))
@@ -166,7 +166,7 @@ class PlainGaussians(SceneModel):
             return
         h, w = render.image.shape[:2]
         visible = render.radii > 0
-        ndc = grad.detach() * torch.tensor([w / 2.0, h / 2.0])
+        ndc = grad.detach() * torch.tensor([w / 2.0, h / 2.0], device=grad.device)
         self.grad_accum[visible] += ndc[visible].norm(dim=-1)
         self.grad_count[visible] += 1
         self.max_radii[visible] = torch.maximum(self.max_radii[visible], render.radii[visible].float())
@@ -229,9 +229,10 @@ class PlainGaussians(SceneModel):
 
     def _extend_buffers(self, tags: torch.Tensor) -> None:
         m = tags.shape[0]
-        self.kf_tags = torch.cat([self.kf_tags, tags])
+        self.kf_tags = torch.cat([self.kf_tags, tags.to(self.kf_tags.device)])
         for name in ("grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, torch.cat([getattr(self, name), torch.zeros(m)]))
+            buf = getattr(self, name)
+            setattr(self, name, torch.cat([buf, torch.zeros(m, device=buf.device)]))
 
     def _keep(self, keep: torch.Tensor, optimizer) -> None:
         self.gs.keep(keep, optimizer)
@@ -251,9 +252,9 @@ class PlainGaussians(SceneModel):
     def resize_for_state(self, state_dict) -> None:
         n = state_dict["gs.params.means"].shape[0]
         self.gs.resize_(n)
-        self.kf_tags = torch.zeros(n, dtype=torch.int64)
+        self.kf_tags = torch.zeros(n, dtype=torch.int64, device=self.kf_tags.device)
         for name in ("grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, torch.zeros(n))
+            setattr(self, name, torch.zeros(n, device=self.kf_tags.device))
 
     def export_ply(self, path: str | Path, view: View) -> int:
         g = self.gs

@@ -168,7 +168,13 @@ class SegsModel(SceneModel):
             out[name] = LrSchedule(lr[name], lr[f"{name}_final"], n)
         return out
 
+    def _on_device(self, view: View) -> View:
+        """The view with its pose on the model's device (evaluation and export pass CPU poses)."""
+        dev = self.field.xyz.device
+        return view if view.w2c.device == dev else View(view.w2c.to(dev), view.camera, view.kf_id)
+
     def decode(self, view: View, step: int) -> Decoded:
+        view = self._on_device(view)
         self.appearance.scene_extent = self.scene_extent
         embedding = self.appearance(view.w2c, view.kf_id)
         decoded, info = self.field.decode(view, embedding)
@@ -218,9 +224,10 @@ class SegsModel(SceneModel):
     def resize_for_state(self, state_dict) -> None:
         n = state_dict["field.params.params.features"].shape[0]
         self.field.params.resize_(n)
-        self.field.xyz = torch.zeros(n, 3)
+        dev = self.field.xyz.device
+        self.field.xyz = torch.zeros(n, 3, device=dev)
         self.densifier.resize_(n)
-        self.kf_tags = torch.zeros(n, dtype=torch.int64)
+        self.kf_tags = torch.zeros(n, dtype=torch.int64, device=dev)
         if "appearance.centers" in state_dict:
             self.appearance.centers = torch.zeros_like(state_dict["appearance.centers"])
             self.appearance.center_ids = torch.zeros_like(state_dict["appearance.center_ids"])
@@ -235,6 +242,7 @@ class SegsModel(SceneModel):
     @torch.no_grad()
     def export_ply(self, path: str | Path, view: View) -> int:
         """Decode every anchor (no frustum culling) with this view's direction and appearance."""
+        view = self._on_device(view)
         embedding = self.appearance(view.w2c, view.kf_id)
         d, _ = self.field.decode(view, embedding, cull=False)
         return write_gaussian_ply(path, d.means, d.quats, d.scales, d.opacities, rgb_to_sh_dc(d.colors))

@@ -40,7 +40,8 @@ class Run:
 
     @property
     def status(self) -> str:
-        """finished | tracking_failed (metrics.json says the frontend tracked nothing mappable) |
+        """finished | not_evaluated (trained with eval.enabled=false: no image / ATE metric) |
+        tracking_failed (metrics.json says the frontend tracked nothing mappable) |
         failed (error recorded) | no metrics (crashed or still running) | not started."""
         if not self.started:
             return "not started"

@@ -171,7 +171,9 @@ def crash_summary(runs: list[Run]) -> str:
     crashed = [r for r in runs if r.crashed]
     missing = [r for r in runs if not r.started]
     lost = sum(r.status == "tracking_failed" for r in runs)
+    unevaluated = sum(r.status == "not_evaluated" for r in runs)
     text = (f"{len(runs)} jobs: {sum(r.status == 'finished' for r in runs)} finished, "
+            + (f"{unevaluated} trained without evaluation (eval.enabled=false), " if unevaluated else "")
             + (f"{lost} tracking failed (no keyframe to map; recorded in metrics.json), " if lost else "")
             + f"{len(crashed)} crashed or unfinished (no metrics.json), {len(missing)} never started.")  # fmt: skip
     if any(r.superseded for r in runs):

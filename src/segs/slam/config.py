@@ -22,7 +22,7 @@ class FeatureConfig:
 @dataclass
 class TrackingConfig:
     rgbd_baseline: float = 0.08  # virtual stereo baseline of RGB-D (ORB-SLAM's bf / fx)
-    rgbd_depth_noise: float = 0.003  # RGB-D depth sigma = k z^2 (1/m); ORB-SLAM: 1 px disparity
+    rgbd_depth_noise: float = 0.0015  # RGB-D depth sigma = k z^2 (1/m), Kinect v1; ORB-SLAM: 1 px disparity
     close_depth_factor: float = 40.0  # "close" points: depth < factor * baseline (ORB-SLAM ThDepth)
     max_depth: float = 10.0  # depths beyond are unknown
     depth_edge_ratio: float = 0.05  # RGB-D: no depth where the 3x3 depth range exceeds this x depth
@@ -37,7 +37,7 @@ class TrackingConfig:
     kf_max_gap: int = 15  # a keyframe at least every N frames (if c2 holds); authors: 15
     kf_min_gap: int = 3  # ratio-rule keyframes not sooner than this (paces single-thread mode)
     kf_min_gap_mono: int = 0  # idem, monocular (its keyframes are its only source of new points)
-    kf_ref_ratio: float = 0.9  # inliers / reference keyframe's points below this -> keyframe
+    kf_ref_ratio: float = 0.75  # inliers / reference keyframe's points below this -> keyframe (ORB-SLAM3)
     kf_ref_ratio_mono: float = 0.9
     kf_track_ratio: float = 0.5  # ... or below this share of the best count since the last keyframe
     kf_close_tracked: int = 100  # stereo / RGB-D: need close points if fewer tracked ...
@@ -66,8 +66,8 @@ class MappingConfig:
     triangulate_ratio: float = 0.6
     min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
-    ba_window: int = 10  # optimised keyframes of local BA (new one + best covisible)
-    ba_fixed_max: int = 20  # keyframes held fixed around the window
+    ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
+    ba_fixed_max: int = 10  # keyframes held fixed around the window
     ba_iterations: tuple = (5, 10)  # LM iterations before / after removing outliers
     cull_points: bool = True
     min_found_ratio: float = 0.25

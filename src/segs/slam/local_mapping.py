@@ -223,21 +223,23 @@ class LocalMapper:
             return 0
         w2c = S if S is not None else kf.w2c
         q, k = self.project_match(kf, pids, w2c, th, fuse=True)
-        n = 0
+        n, merged = 0, []
         for p, i in zip(pids[q].tolist(), k.tolist()):
             if not m.valid[p] or kf.kf_id in m.obs[p]:
                 continue
             cur = int(kf.points[i])
             if cur >= 0 and m.valid[cur]:
-                if m.n_obs[cur] > m.n_obs[p]:
-                    m.replace_point(p, cur)
-                else:
-                    m.replace_point(cur, p)
-                    if kf.kf_id not in m.obs[p]:
-                        m.add_obs(p, kf, i)
+                keep, drop = (cur, p) if m.n_obs[cur] > m.n_obs[p] else (p, cur)
+                m.replace_point(drop, keep, update_descriptor=False)
+                merged.append(keep)
+                if keep == p and kf.kf_id not in m.obs[p]:
+                    m.add_obs(p, kf, i)
             else:
                 m.add_obs(p, kf, i)
             n += 1
+        alive = [x for x in {m.live(x) for x in merged} if x >= 0]
+        if alive:
+            m.update_descriptors(np.array(sorted(alive), np.int64))
         return n
 
     def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,
@@ -302,19 +304,7 @@ class LocalMapper:
         if problem is None:
             return
         poses, fixed, points, obs, rigid = problem
-        ba = sysm.ba
-        it1, it2 = (tuple(iterations) + (0,))[:2]
-        new_poses, new_points = ba.run(poses, fixed, points, obs, it1)
-        P = np.array([new_points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
-        bad, _ = ba.chi2(new_poses, P, obs)
-        if it2 > 0 and bad.any():
-            keep = ~bad
-            sub = Observations(obs.kf[keep], obs.pid[keep], obs.uv[keep], obs.ur[keep], obs.octave[keep])
-            sub_points = {p: new_points[p] for p in np.unique(sub.pid).tolist()}
-            new_poses, pts2 = ba.run(new_poses, fixed, sub_points, sub, it2)
-            new_points.update(pts2)
-            P = np.array([new_points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
-            bad, _ = ba.chi2(new_poses, P, obs)
+        new_poses, new_points, bad = sysm.ba.run_two_pass(poses, fixed, points, obs, iterations)
         with m.lock:
             self._move_rigid(rigid, poses, new_poses)
             self._write_back(window, new_poses, fixed, new_points, obs, bad)
@@ -395,6 +385,8 @@ class LocalMapper:
 
     # ------------------------------------------------------------------ keyframe culling
     def _cull_keyframes(self, kf: KeyFrame) -> None:
+        """ORB-SLAM's redundancy test: a covisible keyframe is culled when more than `redundancy`
+        of its (close) points are seen by at least 3 other keyframes at the same or a finer scale."""
         m, sysm = self.sys.map, self.sys
         th_obs = 3
         for n in kf.covisible(self.cfg.cull_window):
@@ -405,24 +397,21 @@ class LocalMapper:
             if sysm.sensor != "mono":
                 close = (k.depth[idx] > 0) & (k.depth[idx] < sysm.th_depth)
                 idx, pids = idx[close], pids[close]
-            if len(pids) == 0:
+            many = m.n_obs[pids] > th_obs  # points seen often enough to be redundant at all
+            if len(pids) == 0 or many.sum() <= self.cfg.redundancy * len(pids):
                 continue
             redundant = 0
-            for i, p in zip(idx.tolist(), pids.tolist()):
-                o = m.obs[p]
-                if m.n_obs[p] <= th_obs:
-                    continue
-                lvl = k.kp.octave[i]
+            for i, p in zip(idx[many].tolist(), pids[many].tolist()):
+                lvl = k.kp.octave[i] + 1
                 cnt = 0
-                for k2, j in o.items():
-                    if k2 == n:
-                        continue
-                    kk = m.kfs.get(k2)
-                    if kk is not None and kk.kp.octave[j] <= lvl + 1:
-                        cnt += 1
-                        if cnt >= th_obs:
-                            redundant += 1
-                            break
+                for k2, j in m.obs[p].items():
+                    if k2 != n:
+                        kk = m.kfs.get(k2)
+                        if kk is not None and kk.kp.octave[j] <= lvl:
+                            cnt += 1
+                            if cnt >= th_obs:
+                                redundant += 1
+                                break
             if redundant > self.cfg.redundancy * len(pids):
                 m.set_kf_bad(k)
                 sysm.kfdb.erase(n)

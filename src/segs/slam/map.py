@@ -171,8 +171,9 @@ class Map:
         self.valid[pid] = False
         self.version += 1
 
-    def replace_point(self, old: int, new: int) -> None:
-        """Merge point `old` into `new` (fusion of duplicates)."""
+    def replace_point(self, old: int, new: int, update_descriptor: bool = True) -> None:
+        """Merge point `old` into `new` (fusion of duplicates). update_descriptor=False leaves the
+        distinctive descriptor of `new` to the caller (batched after a fusion pass)."""
         if old == new or not self.valid[old] or not self.valid[new]:
             return
         for kf_id, idx in list(self.obs[old].items()):
@@ -192,7 +193,8 @@ class Map:
         self.valid[old] = False
         self.replaced[old] = new
         self.version += 1
-        self.update_descriptors(np.array([new]))
+        if update_descriptor:
+            self.update_descriptors(np.array([new]))
 
     def live(self, pid: int) -> int:
         """Follow replacements to the surviving point (or -1)."""

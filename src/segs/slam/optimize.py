@@ -208,6 +208,9 @@ class Observations:
     octave: np.ndarray
 
 
+_X0, _L0 = gtsam.symbol("x", 0), gtsam.symbol("l", 0)  # keys: symbol(c, j) = symbol(c, 0) + j
+
+
 def _pose3(w2c: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(inv_se3(w2c))
 
@@ -245,27 +248,31 @@ class BundleAdjuster:
         self.noise3 = [robust(3, s, CHI2_STEREO) for s in scales]
         self.prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
 
-    def run(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
-            obs: Observations, iterations: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
-        """Optimise poses (w2c, kf_id -> [4,4]; those in `fixed` stay) and points (pid -> [3])."""
-        X = lambda k: gtsam.symbol("x", int(k))
-        L = lambda p: gtsam.symbol("l", int(p))
+    def _factors(self, obs: Observations) -> list:
+        """One gtsam factor per observation (stereo / RGB-D when ur >= 0, else monocular)."""
+        xs = (np.uint64(_X0) + obs.kf.astype(np.uint64)).tolist()
+        ls = (np.uint64(_L0) + obs.pid.astype(np.uint64)).tolist()
+        stereo, mono = gtsam.GenericStereoFactor3D, gtsam.GenericProjectionFactorCal3_S2
+        n3, n2, cal_st, cal = self.noise3, self.noise2, self.cal_st, self.cal
+        out = []
+        for x, lm, (u, v), r, o in zip(xs, ls, obs.uv.tolist(), obs.ur.tolist(), obs.octave.tolist()):
+            if r >= 0:
+                out.append(stereo(gtsam.StereoPoint2(u, r, v), n3[o], x, lm, cal_st))
+            else:
+                out.append(mono(np.array((u, v)), n2[o], x, lm, cal))
+        return out
+
+    def _optimize(self, poses, fixed, points, factors, iterations):
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         for k, T in poses.items():
-            values.insert(X(k), _pose3(T))
+            values.insert(_X0 + int(k), _pose3(T))
             if k in fixed:
-                graph.add(gtsam.PriorFactorPose3(X(k), _pose3(T), self.prior))
+                graph.add(gtsam.PriorFactorPose3(_X0 + int(k), _pose3(T), self.prior))
         for p, x in points.items():
-            values.insert(L(p), np.asarray(x, np.float64))
-        for k, p, (u, v), r, o in zip(obs.kf.tolist(), obs.pid.tolist(), obs.uv.tolist(),
-                                      obs.ur.tolist(), obs.octave.tolist()):
-            if r >= 0:
-                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, r, v), self.noise3[o],
-                                                      X(k), L(p), self.cal_st))
-            else:
-                graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([u, v]), self.noise2[o],
-                                                               X(k), L(p), self.cal))
+            values.insert(_L0 + int(p), np.asarray(x, np.float64))
+        for f in factors:
+            graph.add(f)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(iterations))
         params.setRelativeErrorTol(1e-5)
@@ -273,9 +280,34 @@ class BundleAdjuster:
             result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         except RuntimeError:  # indeterminate system (degenerate window): keep the input
             return dict(poses), dict(points)
-        new_poses = {k: inv_se3(result.atPose3(X(k)).matrix()) for k in poses}
-        new_points = {p: result.atPoint3(L(p)) for p in points}
-        return new_poses, new_points
+        return ({k: inv_se3(result.atPose3(_X0 + int(k)).matrix()) for k in poses},
+                {p: result.atPoint3(_L0 + int(p)) for p in points})
+
+    def run(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
+            obs: Observations, iterations: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Optimise poses (w2c, kf_id -> [4,4]; those in `fixed` stay) and points (pid -> [3])."""
+        return self._optimize(poses, fixed, points, self._factors(obs), iterations)
+
+    def run_two_pass(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
+                     obs: Observations, iterations: tuple[int, int]):
+        """ORB-SLAM's local BA: optimise, drop the observations that fail the chi2 test, optimise
+        again without them (reusing the factors). -> (poses, points, outlier mask [O] after the
+        last pass)."""
+        it1, it2 = (tuple(iterations) + (0,))[:2]
+        factors = self._factors(obs)
+        new_poses, new_points = self._optimize(poses, fixed, points, factors, it1)
+        bad = self._bad(new_poses, new_points, obs)
+        if it2 > 0 and bad.any():
+            keep = np.flatnonzero(~bad)
+            sub_points = {p: new_points[p] for p in np.unique(obs.pid[keep]).tolist()}
+            new_poses, pts2 = self._optimize(new_poses, fixed, sub_points, [factors[i] for i in keep.tolist()], it2)
+            new_points.update(pts2)
+            bad = self._bad(new_poses, new_points, obs)
+        return new_poses, new_points, bad
+
+    def _bad(self, poses, points, obs: Observations) -> np.ndarray:
+        P = np.array([points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
+        return self.chi2(poses, P, obs)[0]
 
     def chi2(self, poses: dict[int, np.ndarray], points: np.ndarray, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
         """Outlier test per observation: (chi2 > threshold or behind the camera) [O] bool, chi2 [O].

@@ -26,6 +26,7 @@ import numpy as np
 from segs.data.frame import Camera, Frame
 from segs.errors import ConfigError
 from segs.slam import config as C
+from segs.slam.ba_process import BundleAdjusterProcess
 from segs.slam.base import FrameResult, Frontend, MapUpdate
 from segs.slam.features import OrbExtractor
 from segs.slam.frame import FrameBuilder
@@ -80,7 +81,9 @@ class OrbFrontend(Frontend):
         self.builder = FrameBuilder(camera, sensor, self.extractor, self.bf, tc.max_depth, stereo, fc.grid_cell,
                                     tc.depth_edge_ratio)
         self.vocab = Vocabulary.load(self.cfg.loop.vocabulary)
-        self.ba = BundleAdjuster(self.K, self.bf if sensor != "mono" else 0.0, self.scales, ur_sigma=self.ur_sigma)
+        # threaded: bundle adjustment in a child process (gtsam holds the GIL while optimising)
+        self.ba = (BundleAdjusterProcess if self.threaded else BundleAdjuster)(
+            self.K, self.bf if sensor != "mono" else 0.0, self.scales, ur_sigma=self.ur_sigma)
         self._out_lock = threading.Lock()
         self._reset_state()
         self._queue: queue.Queue | None = None
@@ -151,6 +154,8 @@ class OrbFrontend(Frontend):
         with self.map.lock:
             self.mapper.flush_recent()
             self.emit_poses(list(self.map.kfs) + list(self.map.culled))
+        if isinstance(self.ba, BundleAdjusterProcess):
+            self.ba.close()  # restarted on demand
         return self.poll()
 
     def trajectory(self) -> dict[int, np.ndarray]:

@@ -4,20 +4,74 @@ A vocabulary tree of branching k and depth L is trained by hierarchical k-majori
 ORB descriptors (k-means for Hamming space: centres are bitwise majority votes). Words are the
 leaves; tf-idf weights, L1-normalised vectors and DBoW2's L1 score s = 1 - |v1 - v2|_1 / 2.
 
-The shipped vocabulary (``vocab/orb_k8_l4.npz``, 4,096 words) was trained with
-``python -m segs.slam.vocabulary`` from the ORB features of the repository's real images
-(datasets/tum_fr3_cabinet_kf and datasets/euroc_v101_micro); see `train_from_images`.
+The shipped vocabulary (``vocab/orb_k10_l4.npz``, k = 10, L = 4: 10,000 words) is trained on
+none of the test data: `CORPUS` lists 14 photographs bundled in the scikit-image and scikit-learn
+wheels (public domain, CC0 or CC BY 2.0; checked by SHA-256), each seen as
+``TrainingConfig.views`` random views (`augment`: perspective tilt, rotation, scale, crop to at
+most 640x480, gain / gamma / blur / noise / JPEG). Reproduce it (seed fixed) with::
+
+    pip install -e ".[vocab]"          # scikit-image and scikit-learn, for their images only
+    python -m segs.slam.vocabulary     # -> src/segs/slam/vocab/orb_k10_l4.npz
+
+``python -m segs.slam.vocabulary IMG... --out my.npz`` trains on your own images instead
+(``loop.vocabulary: my.npz`` uses it). docs/data.md ("BoW vocabulary") has the image list,
+licences and the place-recognition recall on 7-Scenes frames.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import importlib.util
+import os
+import sys
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
+from segs.errors import ConfigError, DataError, UserInputError
+from segs.slam.config import FeatureConfig
 from segs.slam.features import hamming_matrix
 
-DEFAULT_PATH = Path(__file__).with_name("vocab") / "orb_k8_l4.npz"
+DEFAULT_PATH = Path(__file__).with_name("vocab") / "orb_k10_l4.npz"
+
+# Training photographs bundled in PyPI wheels (no download), none from the test data, each with
+# the licence its package states: (package, file inside the package, SHA-256 prefix, licence)
+CORPUS = (
+    ("skimage", "data/astronaut.png", "88431cd9653ccd53", "public domain (NASA)"),
+    ("skimage", "data/camera.png", "b0793d2adda0fa6a", "CC0 (Lav Varshney)"),
+    ("skimage", "data/chelsea.png", "596aa1e7cb875eb7", "CC0 (Stefan van der Walt)"),
+    ("skimage", "data/coffee.png", "cc02f8ca188b167c", "CC0 (Rachel Michetti)"),
+    ("skimage", "data/rocket.jpg", "c2dd0de7c538df8d", "public domain (SpaceX)"),
+    ("skimage", "data/coins.png", "f8d773fc9cfa6f4d", "no known copyright restrictions (Brooklyn Museum)"),
+    ("skimage", "data/clock_motion.png", "f029226b28b642e8", "public domain (Stefan van der Walt)"),
+    ("skimage", "data/brick.png", "7966caf324f6ba84", "CC0 (CC0Textures)"),
+    ("skimage", "data/grass.png", "b6b6022426b38936", "CC0 (DeviantArt, linolafett)"),
+    ("skimage", "data/gravel.png", "c48615b451bf1e60", "CC0 (CC0Textures)"),
+    ("skimage", "data/text.png", "bd84aa3a6e3c9887", "public domain (Wikipedia)"),
+    ("skimage", "data/hubble_deep_field.jpg", "3a19c5dd8a927a93", "public domain (NASA)"),
+    ("sklearn", "datasets/images/china.jpg", "8378025ad2519d64", "CC BY 2.0 (danielbuechele, Flickr)"),
+    ("sklearn", "datasets/images/flower.jpg", "a77f6ec41e353afd", "CC BY 2.0 (vultilion, Flickr)"),
+)
+_PIP_NAMES = {"skimage": "scikit-image", "sklearn": "scikit-learn"}
+
+
+@dataclass
+class TrainingConfig:
+    """Vocabulary training: tree shape, views per image and the ORB settings.
+
+    k, depth: branching and levels (k^depth words); views: per image, the image itself and
+    views - 1 random augmentations (`augment`); max_size: (width, height) of a view at most;
+    seed: the augmentations and the clustering; features: the extractor's (the frontend's)."""
+
+    k: int = 10
+    depth: int = 4
+    views: int = 32
+    seed: int = 0
+    max_size: tuple[int, int] = (640, 480)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
 
 
 def _majority(desc: np.ndarray) -> np.ndarray:
@@ -66,8 +120,8 @@ class Vocabulary:
 
     # --------------------------------------------------------------- training / io
     @classmethod
-    def train(cls, desc: np.ndarray, n_images: np.ndarray, k: int = 8, depth: int = 4,
-              seed: int = 0) -> "Vocabulary":
+    def train(cls, desc: np.ndarray, n_images: np.ndarray, k: int = TrainingConfig.k,
+              depth: int = TrainingConfig.depth, seed: int = TrainingConfig.seed) -> "Vocabulary":
         """desc [N,32] training descriptors, n_images [N] image index of each (for the idf)."""
         rng = np.random.default_rng(seed)
         levels: list[np.ndarray] = []
@@ -85,18 +139,34 @@ class Vocabulary:
         n_img = int(n_images.max()) + 1
         pairs = np.unique(np.c_[words, n_images], axis=0)
         df = np.bincount(pairs[:, 0], minlength=voc.n_words)
-        voc.idf = np.log(n_img / np.maximum(df, 1)) + np.where(df == 0, 0.0, 0.0)
-        voc.idf[df == 0] = np.log(n_img)
+        voc.idf = np.log(n_img / np.maximum(df, 1))  # a word no image has weighs like the rarest
         return voc
 
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(path, k=self.k, idf=self.idf, **{f"level{i}": c for i, c in enumerate(self.levels)})
+        """Write the tree (.npz; idf as float32), through a temporary file: never half written."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, k=self.k, idf=self.idf.astype(np.float32),
+                                **{f"level{i}": c for i, c in enumerate(self.levels)})
+        os.replace(tmp, path)
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> "Vocabulary":
-        with np.load(Path(path) if path else DEFAULT_PATH) as z:
-            n = len([f for f in z.files if f.startswith("level")])
-            return cls(int(z["k"]), [z[f"level{i}"] for i in range(n)], z["idf"])
+        """A saved tree (.npz); None = the shipped one. Missing or malformed: ConfigError."""
+        path = Path(path) if path else DEFAULT_PATH
+        if not path.is_file():
+            raise ConfigError(f"slam.loop.vocabulary: {path}: file not found")
+        try:
+            with np.load(path) as z:
+                n = len([f for f in z.files if f.startswith("level")])
+                k, levels, idf = int(z["k"]), [z[f"level{i}"] for i in range(n)], z["idf"]
+        except (OSError, ValueError, KeyError) as e:
+            raise ConfigError(f"slam.loop.vocabulary: {path}: not a vocabulary .npz ({type(e).__name__})") from None
+        shapes_ok = n > 0 and all(c.shape == (k ** (i + 1), 32) and c.dtype == np.uint8 for i, c in enumerate(levels))
+        if not shapes_ok or idf.shape != (k ** n,):
+            raise ConfigError(f"slam.loop.vocabulary: {path}: inconsistent tree (k={k}, {n} levels)")
+        return cls(k, levels, idf)
 
     # --------------------------------------------------------------- transform
     def words(self, desc: np.ndarray) -> np.ndarray:
@@ -154,6 +224,13 @@ class KeyFrameDatabase:
                     counts[k] = counts.get(k, 0) + 1
         return counts
 
+    def query(self, bow: tuple[np.ndarray, np.ndarray], n: int = 10,
+              exclude: set[int] = frozenset()) -> list[tuple[int, float]]:
+        """DBoW2's database query: the n keyframes of best score with bow (sharing a word, not in
+        exclude) -> [(kf_id, score)], best first (ties by id)."""
+        scored = [(k, bow_score(bow, self.bows[k])) for k in self.common_words(bow, set(exclude))]
+        return sorted(scored, key=lambda t: (-t[1], t[0]))[:n]
+
     def candidates(self, bow: tuple[np.ndarray, np.ndarray], exclude: set[int], min_score: float,
                    covisible: dict[int, list[int]], max_out: int = 10) -> list[int]:
         """DBoW2/ORB-SLAM candidate selection: keyframes sharing >= 80 % of the best word count,
@@ -183,36 +260,153 @@ class KeyFrameDatabase:
         return out[:max_out]
 
 
-def train_from_images(paths: list[str], n_features: int = 1500, k: int = 8, depth: int = 4,
-                      fast_threshold: int = 7) -> Vocabulary:
-    """Vocabulary from the ORB features of images (files read with OpenCV, grey)."""
+
+# ------------------------------------------------------------------- training corpus
+def corpus_paths() -> list[Path]:
+    """The files of `CORPUS` in the installed packages (located, not imported; hashes checked)."""
+    out = []
+    for pkg, rel, sha, _ in CORPUS:
+        spec = importlib.util.find_spec(pkg)
+        if spec is None or not spec.submodule_search_locations:
+            raise DataError(f"vocabulary: the training images need {_PIP_NAMES[pkg]} "
+                            "(pip install -e '.[vocab]')")
+        path = Path(list(spec.submodule_search_locations)[0]) / rel
+        if not path.is_file():
+            raise DataError(f"{path}: training image not found in the installed {_PIP_NAMES[pkg]}")
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        if not digest.startswith(sha):
+            raise DataError(f"{path}: SHA-256 {digest[:16]}, expected {sha} (another version of the image)")
+        out.append(path)
+    return out
+
+
+def _view_homography(h: int, w: int, rng: np.random.Generator,
+                     max_size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
+    """Random homography [3,3] from an h x w image to a view, and the view size (width, height).
+
+    A virtual camera (focal max(h, w), looking at the image centre) turns by up to 35 degrees
+    about a random axis in the image plane (perspective), then rotation +-30 degrees and scale
+    0.5-2 (log-uniform); the view is a random crop of the result of at most max_size."""
     import cv2
 
+    f = float(max(h, w))
+    cam = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    a = rng.uniform(0, 2 * np.pi)
+    turn = cv2.Rodrigues(np.radians(rng.uniform(0, 35)) * np.array([np.cos(a), np.sin(a), 0.0]))[0]
+    sim = np.eye(3)
+    angle = rng.uniform(-30, 30)
+    sim[:2] = cv2.getRotationMatrix2D((0.0, 0.0), angle, float(np.exp(rng.uniform(np.log(0.5), np.log(2)))))
+    H = sim @ cam @ turn @ np.linalg.inv(cam)
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64).reshape(-1, 1, 2)
+    warped = cv2.perspectiveTransform(corners, H).reshape(-1, 2)
+    lo, hi = warped.min(0), warped.max(0)
+    size = np.minimum(np.ceil(hi - lo), max_size).astype(int)
+    origin = lo + rng.uniform(0, 1, 2) * np.maximum(hi - lo - size, 0)
+    shift = np.array([[1, 0, -origin[0]], [0, 1, -origin[1]], [0, 0, 1]])
+    return shift @ H, (int(size[0]), int(size[1]))
+
+
+def augment(gray: np.ndarray, rng: np.random.Generator,
+            max_size: tuple[int, int] = TrainingConfig.max_size) -> tuple[np.ndarray, np.ndarray]:
+    """A random view of a grey image [H,W] uint8 -> (view [h,w] uint8, valid [h,w] bool: inside
+    the source image). Geometry: `_view_homography`; photometry: gamma 0.6-1.6, gain 0.6-1.3,
+    offset +-0.1, Gaussian blur (sigma 0.3-1.2, half the views), noise (sigma <= 3 grey levels),
+    JPEG re-encoding at quality 50-95 (70 % of the views)."""
+    import cv2
+
+    H, (w, h) = _view_homography(*gray.shape, rng, max_size)
+    view = cv2.warpPerspective(gray, H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+    inside = cv2.warpPerspective(np.full_like(gray, 255), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0)
+    valid = inside > 0
+    x = (view.astype(np.float32) / 255.0) ** float(np.exp(rng.uniform(np.log(0.6), np.log(1.6))))
+    x = x * rng.uniform(0.6, 1.3) + rng.uniform(-0.1, 0.1)
+    if rng.random() < 0.5:
+        x = cv2.GaussianBlur(x, (0, 0), rng.uniform(0.3, 1.2))
+    x = x + rng.normal(0.0, rng.uniform(0, 3 / 255), x.shape).astype(np.float32)
+    view = np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if rng.random() < 0.7:
+        _, buf = cv2.imencode(".jpg", view, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(50, 96))])
+        view = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    view[~valid] = 0
+    return view, valid
+
+
+def view_descriptors(extractor, view: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """ORB descriptors [N,32] uint8 of a view [h,w] uint8 whose rotated 31-pixel patch lies
+    inside valid [h,w] bool (no descriptor of the black border). extractor: an OrbExtractor."""
+    import cv2
+
+    kp = extractor.extract(view)
+    if len(kp) == 0:
+        return kp.desc
+    inside = cv2.distanceTransform(valid.astype(np.uint8), cv2.DIST_L2, 3)
+    u = np.clip(np.round(kp.uv[:, 0]).astype(int), 0, view.shape[1] - 1)
+    v = np.clip(np.round(kp.uv[:, 1]).astype(int), 0, view.shape[0] - 1)
+    keep = inside[v, u] > 22.0 * extractor.scales[kp.octave]  # 15 sqrt(2) + margin, level pixels
+    return kp.desc[keep]
+
+
+def training_views(paths: list[str | Path], cfg: TrainingConfig) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(view [h,w] uint8, valid [h,w] bool) of the training set: cfg.views views of each image
+    (read grey with OpenCV; the first is the image itself)."""
+    import cv2
+
+    rng = np.random.default_rng(cfg.seed)
+    for p in paths:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise DataError(f"{p}: cannot read image (missing, unreadable or corrupt)")
+        yield img, np.ones(img.shape, bool)
+        for _ in range(cfg.views - 1):
+            yield augment(img, rng, cfg.max_size)
+
+
+def train_from_images(paths: list[str | Path],
+                      cfg: TrainingConfig = TrainingConfig()) -> tuple[Vocabulary, int, int]:
+    """Vocabulary from the ORB features of `training_views` (each view is an image of the idf)
+    -> (vocabulary, descriptors, views)."""
     from segs.slam.features import OrbExtractor
 
-    ex = OrbExtractor(n_features, 1.2, 8, fast_threshold, min(fast_threshold, 5))
+    fc = cfg.features
+    ex = OrbExtractor(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold, fc.min_fast_threshold,
+                      fc.cell_size, fc.oversample)
     descs, owner = [], []
-    for i, p in enumerate(paths):
-        img = cv2.imread(p, cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            continue
-        kp = ex.extract(img)
-        descs.append(kp.desc)
-        owner.append(np.full(len(kp), i))
-    return Vocabulary.train(np.concatenate(descs), np.concatenate(owner), k, depth)
+    for view, valid in training_views(paths, cfg):
+        d = view_descriptors(ex, view, valid)
+        descs.append(d)
+        owner.append(np.full(len(d), len(owner)))
+    desc = np.concatenate(descs) if descs else np.zeros((0, 32), np.uint8)
+    if len(desc) < cfg.k ** cfg.depth:
+        raise DataError(f"vocabulary: {len(desc)} descriptors for {cfg.k ** cfg.depth} words; "
+                        "give more images or views")
+    return Vocabulary.train(desc, np.concatenate(owner), cfg.k, cfg.depth, cfg.seed), len(desc), len(owner)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description="Train an ORB vocabulary tree from images.")
-    ap.add_argument("images", nargs="+", help="image files")
+def main(argv: list[str] | None = None) -> None:
+    d = TrainingConfig()
+    ap = argparse.ArgumentParser(description="Train an ORB vocabulary tree (default: the shipped one, "
+                                 "from the bundled corpus of photographs).")
+    ap.add_argument("images", nargs="*", help="image files (default: the corpus, needs the 'vocab' extra)")
     ap.add_argument("--out", default=str(DEFAULT_PATH))
-    ap.add_argument("-k", type=int, default=8)
-    ap.add_argument("--depth", type=int, default=4)
-    a = ap.parse_args()
-    voc = train_from_images(sorted(a.images), k=a.k, depth=a.depth)
+    ap.add_argument("-k", type=int, default=d.k, help="branching")
+    ap.add_argument("--depth", type=int, default=d.depth, help="levels (k^depth words)")
+    ap.add_argument("--views", type=int, default=d.views, help="views per image (1 = the image only)")
+    ap.add_argument("--seed", type=int, default=d.seed)
+    a = ap.parse_args(argv)
+    try:
+        if a.k < 2 or a.depth < 1 or a.views < 1:
+            raise ConfigError("vocabulary: need -k >= 2, --depth >= 1 and --views >= 1")
+        paths = sorted(a.images) if a.images else corpus_paths()
+        t0 = time.perf_counter()
+        cfg = TrainingConfig(k=a.k, depth=a.depth, views=a.views, seed=a.seed)
+        voc, n_desc, n_views = train_from_images(paths, cfg)
+    except UserInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     voc.save(a.out)
-    print(f"vocabulary: {voc.n_words} words -> {a.out}")
+    print(f"vocabulary: {voc.n_words} words (k={voc.k}, L={len(voc.levels)}) from {len(paths)} images, "
+          f"{n_views} views, {n_desc} descriptors in {time.perf_counter() - t0:.0f} s -> {a.out}")
 
 
 if __name__ == "__main__":
