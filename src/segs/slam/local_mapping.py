@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from segs.slam.geometry import fundamental, inv_se3, project, transform, triangulate
+from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
 from segs.slam.map import KeyFrame
 from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
 from segs.slam.features import hamming_pairs
@@ -287,14 +287,22 @@ class LocalMapper:
             window = [kf.kf_id] + [k for k in kf.covisible(self.cfg.ba_window - 1) if k in m.kfs]
         self.run_ba(window, self.cfg.ba_fixed_max, self.cfg.ba_iterations)
 
-    def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10) -> None:
+    def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None:
+        """BA of kf_ids (default: all keyframes) with the origin fixed; fix_scale: see run_ba."""
         m = self.sys.map
         with m.lock:
             window = sorted(m.kfs) if kf_ids is None else list(kf_ids)
-        self.run_ba(window, 0, (iterations, iterations // 2), global_=True)
+        self.run_ba(window, 0, (iterations, iterations // 2), global_=True, fix_scale=fix_scale)
 
-    def run_ba(self, window: list[int], fixed_max: int, iterations, global_: bool = False) -> None:
-        """Bundle adjustment of window keyframes + their points; observers outside stay fixed."""
+    def run_ba(self, window: list[int], fixed_max: int, iterations, global_: bool = False,
+               fix_scale: bool = True) -> None:
+        """Bundle adjustment of window keyframes + their points; observers outside stay fixed.
+
+        fix_scale (monocular): with a single fixed keyframe the scale is a free gauge and LM
+        wanders along it (the whole young map shrank or grew by 2-5x in one BA); the result is
+        then scaled back about the fixed camera (an exact gauge move: no reprojection error
+        changes) to the points' median distance from it before the BA. False only for the
+        two-view initialization, whose scale is normalised afterwards."""
         import time
 
         t0 = time.perf_counter()
@@ -305,10 +313,34 @@ class LocalMapper:
             return
         poses, fixed, points, obs, rigid = problem
         new_poses, new_points, bad = sysm.ba.run_two_pass(poses, fixed, points, obs, iterations)
+        if fix_scale and sysm.sensor == "mono" and len(fixed) == 1:
+            self._keep_gauge_scale(poses[next(iter(fixed))], points, new_poses, new_points, fixed)
         with m.lock:
             self._move_rigid(rigid, poses, new_poses)
             self._write_back(window, new_poses, fixed, new_points, obs, bad)
         self.ba_times.append(time.perf_counter() - t0)
+
+    @staticmethod
+    def _keep_gauge_scale(fixed_w2c: np.ndarray, points: dict, new_poses: dict, new_points: dict,
+                          fixed: set) -> None:
+        """Scale new_poses / new_points (in place) about the fixed camera centre so that the
+        points' median distance from it is what it was before the BA (points: pid -> [3])."""
+        if not points:
+            return
+        c = cam_center(fixed_w2c)
+        ids = list(points)
+        before = np.median(np.linalg.norm(np.array([points[p] for p in ids]) - c, axis=1))
+        after = np.median(np.linalg.norm(np.array([new_points[p] for p in ids]) - c, axis=1))
+        if not (before > 0 and after > 0):
+            return
+        s = before / after
+        for p in ids:
+            new_points[p] = c + s * (np.asarray(new_points[p]) - c)
+        for k, T in new_poses.items():
+            if k not in fixed:
+                T = T.copy()
+                T[:3, 3] = -T[:3, :3] @ (c + s * (cam_center(T) - c))
+                new_poses[k] = T
 
     def _move_rigid(self, rigid, old_poses, new_poses) -> None:
         """Points left out of BA follow their only keyframe: p <- T_new^-1 T_old p."""

@@ -136,7 +136,7 @@ class Tracker:
         m.update_descriptors(pids)
         m.update_connections(kf0)
         m.update_connections(kf1)
-        self.sys.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=20)
+        self.sys.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=20, fix_scale=False)
         # scale: median depth of the first keyframe = 1
         _, p0 = m.kf_point_ids(kf0)
         depth = transform(kf0.w2c, m.pos[p0])[:, 2]
