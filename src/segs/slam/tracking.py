@@ -421,7 +421,11 @@ class Tracker:
         self._max_inl = max(self._max_inl, n_inl)
         low_cover = n_inl < cfg.kf_track_ratio * self._max_inl
         c2 = (n_inl < n_ref * ratio or need_close or low_cover) and n_inl > 15
-        return c2 and (c1a or c1b or c1c or low_cover)
+        # monocular weak tracking (ORB-SLAM3's c4, there for inertial monocular): fewer than
+        # kf_weak_mono tracked points; forward motion leaves the mapped area within frames and
+        # keyframes are the only source of new points
+        c4 = sysm.sensor == "mono" and 15 < n_inl < cfg.kf_weak_mono
+        return (c2 and (c1a or c1b or c1c or low_cover)) or c4
 
     def _create_keyframe(self, frame: SlamFrame) -> KeyFrame:
         m = self.sys.map
