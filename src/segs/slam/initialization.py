@@ -41,28 +41,38 @@ class MonoInitializer:
         self.sigma2 = sigma2
         self.seed = seed
         self.ref: SlamFrame | None = None
+        # frames fed since the reference (in order): tracked against the initial map afterwards
+        self.waiting: list[SlamFrame] = []
 
     def reset(self) -> None:
         self.ref = None
+        self.waiting = []
 
     def try_initialize(self, frame: SlamFrame) -> TwoViewResult | None:
         """Feed a frame; returns a result once two views give a sound reconstruction."""
         if self.ref is None or len(self.ref) < self.cfg.min_matches \
                 or frame.index - self.ref.index > self.cfg.max_frames:
-            self.ref = frame if len(frame) >= self.cfg.min_matches else None
+            self._set_ref(frame if len(frame) >= self.cfg.min_matches else None)
             return None
         i1, i2 = match_descriptors(self.ref.kp.desc, frame.kp.desc, ratio=0.9, max_dist=50)
         keep = rotation_consistent(self.ref.kp.angle[i1], frame.kp.angle[i2])
         i1, i2 = i1[keep], i2[keep]
         if len(i1) < self.cfg.min_matches:
             if len(i1) < self.cfg.min_matches // 2:
-                self.ref = frame
+                self._set_ref(frame)
+            else:
+                self.waiting.append(frame)
             return None
         res = self.reconstruct(self.ref.kp.uv[i1], frame.kp.uv[i2], self.sigma2[self.ref.kp.octave[i1]])
         if res is None:
+            self.waiting.append(frame)
             return None
         w2c, X, good = res
         return TwoViewResult(w2c, X[good], i1[good], i2[good], "")
+
+    def _set_ref(self, frame: SlamFrame | None) -> None:
+        self.ref = frame
+        self.waiting = []
 
     # ------------------------------------------------------------------ two-view geometry
     def reconstruct(self, x1: np.ndarray, x2: np.ndarray, sig2: np.ndarray):

@@ -288,6 +288,12 @@ class OrbFrontend(Frontend):
         self._lost.discard(kf.frame_index)
         self.emit_keyframe(kf)
 
+    def record_waiting_frame(self, frame_index: int, kf_id: int, rel: np.ndarray) -> None:
+        """A frame reported lost before the monocular initialization, tracked afterwards against
+        the initial map: pose rel [4,4] = w2c relative to keyframe kf_id (trajectory() only)."""
+        self._traj[frame_index] = ("rel", kf_id, rel.copy())
+        self._lost.discard(frame_index)
+
     def run_global_ba(self, iterations: int) -> None:
         """Global BA (origin fixed) under the map lock; reports the pose changes as corrections."""
         m = self.map

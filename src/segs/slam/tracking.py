@@ -153,9 +153,30 @@ class Tracker:
         frame.w2c = kf1.w2c.copy()
         frame.points = kf1.points.copy()
         self.sys.mapper.register_initial([kf0, kf1], pids)
+        waiting = self.mono_init.waiting
         self.mono_init.reset()
         self.sys.record_initial_keyframe(kf0)
+        ref.w2c, ref.points = kf0.w2c.copy(), kf0.points.copy()
+        self._track_waiting(ref, kf0, waiting)
         return self._after_init(frame, kf1)
+
+    def _track_waiting(self, ref: SlamFrame, kf0: KeyFrame, frames: list[SlamFrame]) -> None:
+        """Monocular: the frames between the two initial views (reported lost while the reference
+        waited) tracked against the new map in order, each from the last one tracked (motion-only
+        optimisation, then the local map). Their poses join the trajectory relative to keyframe 0;
+        no keyframes are made. Tracker state is set afterwards by _after_init."""
+        self.last, self.velocity, self._local_key = ref, None, None
+        for f in frames:
+            self.ref_kf = kf0.kf_id
+            f.points[:] = -1
+            f.outlier[:] = False
+            if not (self._track_motion(f) and self._track_local_map(f)):
+                f.w2c = None
+                continue
+            f.points[f.outlier] = -1
+            f.outlier[:] = False
+            self.sys.record_waiting_frame(f.index, kf0.kf_id, f.w2c @ inv_se3(kf0.w2c))
+            self.last = f
 
     def _after_init(self, frame: SlamFrame, kf: KeyFrame) -> KeyFrame:
         self.state = "ok"
