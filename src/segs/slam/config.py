@@ -39,7 +39,7 @@ class TrackingConfig:
     kf_min_gap_mono: int = 0  # idem, monocular (its keyframes are its only source of new points)
     kf_ref_ratio: float = 0.75  # inliers / reference keyframe's points below this -> keyframe (ORB-SLAM3)
     kf_ref_ratio_mono: float = 0.9
-    kf_weak_mono: int = 75  # monocular: a keyframe whenever fewer points are tracked (ORB-SLAM3 c4)
+    kf_weak_mono: int = 100  # monocular: a keyframe whenever fewer points are tracked (ORB-SLAM3 c4: 75)
     kf_track_ratio: float = 0.5  # ... or below this share of the best count since the last keyframe
     kf_close_tracked: int = 100  # stereo / RGB-D: need close points if fewer tracked ...
     kf_close_untracked: int = 70  # ... and more than this untracked
