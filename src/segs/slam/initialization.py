@@ -2,10 +2,11 @@
 
 RGB-D / stereo: one frame with enough keypoints with depth (back-projected; see `Tracker`).
 Monocular: two views. A reference frame waits for a partner; their ORB matches feed a homography
-and a fundamental matrix (OpenCV RANSAC); ORB-SLAM's symmetric transfer scores choose the model
+and an essential matrix (OpenCV MAGSAC++); ORB-SLAM's symmetric transfer scores choose the model
 (R_H = S_H / (S_H + S_F) > 0.40 -> homography), the model's motion hypotheses are triangulated and
 the one with clearly most points in front of both cameras, small reprojection error and enough
-parallax wins. The scale is arbitrary (normalised later to a median depth of 1).
+parallax wins. The scale is arbitrary (normalised later to a median depth of 1). The frames fed
+while the reference waited are kept (`waiting`): the tracker poses them once the map exists.
 """
 from __future__ import annotations
 
