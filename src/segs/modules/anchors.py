@@ -72,7 +72,7 @@ class AnchorField(nn.Module):
         """Append anchors: positions [M,3], features [M,F], log-scales [M,6]; offsets start at 0."""
         m = xyz.shape[0]
         self.params.extend(
-            {"features": features, "offsets": torch.zeros(m, self.k, 3, device=xyz.device), "log_scales": log_scales},
+            {"features": features, "offsets": features.new_zeros(m, self.k, 3), "log_scales": log_scales},
             optimizer,
         )
         self.xyz = torch.cat([self.xyz, xyz.to(self.xyz)])

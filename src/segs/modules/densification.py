@@ -39,20 +39,20 @@ class AnchorDensifier(nn.Module):
         self.register_buffer("grad_visits", torch.zeros(0, k))
 
     def extend(self, m: int) -> None:
-        dev = self.opacity_accum.device
-        self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(m, device=dev)])
-        self.anchor_visits = torch.cat([self.anchor_visits, torch.zeros(m, device=dev)])
-        self.grad_accum = torch.cat([self.grad_accum, torch.zeros(m, self.k, device=dev)])
-        self.grad_visits = torch.cat([self.grad_visits, torch.zeros(m, self.k, device=dev)])
+        z = self.opacity_accum.new_zeros
+        self.opacity_accum = torch.cat([self.opacity_accum, z(m)])
+        self.anchor_visits = torch.cat([self.anchor_visits, z(m)])
+        self.grad_accum = torch.cat([self.grad_accum, z(m, self.k)])
+        self.grad_visits = torch.cat([self.grad_visits, z(m, self.k)])
 
     def keep(self, mask: torch.Tensor) -> None:
         for name in ("opacity_accum", "anchor_visits", "grad_accum", "grad_visits"):
             setattr(self, name, getattr(self, name)[mask])
 
     def resize_(self, n: int) -> None:
-        dev = self.opacity_accum.device
-        self.opacity_accum, self.anchor_visits = torch.zeros(n, device=dev), torch.zeros(n, device=dev)
-        self.grad_accum, self.grad_visits = torch.zeros(n, self.k, device=dev), torch.zeros(n, self.k, device=dev)
+        z = self.opacity_accum.new_zeros
+        self.opacity_accum, self.anchor_visits = z(n), z(n)
+        self.grad_accum, self.grad_visits = z(n, self.k), z(n, self.k)
 
     @torch.no_grad()
     def record(self, info: DecodeInfo, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int, height: int) -> None:
@@ -64,7 +64,8 @@ class AnchorDensifier(nn.Module):
             return
         slots = info.slots(self.k)
         drawn = radii > 0
-        norm = (means2d_grad[drawn] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)).norm(dim=-1)
+        ndc = means2d_grad.new_tensor([width / 2.0, height / 2.0])
+        norm = (means2d_grad[drawn] * ndc).norm(dim=-1).to(self.grad_accum)
         self.grad_accum.view(-1).index_add_(0, slots[drawn], norm)
         self.grad_visits.view(-1).index_add_(0, slots[drawn], torch.ones_like(norm))
 
@@ -98,14 +99,14 @@ class AnchorDensifier(nn.Module):
                 continue
             parents = parent_of_slot[cand]
             ok = cell >= 0
-            feats = torch.full((centres.shape[0], field.feature_dim), -math.inf, device=centres.device)
+            feats = centres.new_full((centres.shape[0], field.feature_dim), -math.inf)
             feats = feats.scatter_reduce(0, cell[ok, None].expand(-1, field.feature_dim), field.params["features"].detach()[parents[ok]], reduce="amax")
             new_tags = torch.zeros(centres.shape[0], dtype=tags.dtype, device=tags.device).scatter_(0, cell[ok], tags[parents[ok]])
             if centres.shape[0] > room:  # anchor cap: keep the cells with the strongest gradient
-                strength = torch.zeros(centres.shape[0], device=centres.device).scatter_reduce(0, cell[ok], grads[cand][ok], reduce="amax")
+                strength = grads.new_zeros(centres.shape[0]).scatter_reduce(0, cell[ok], grads[cand][ok], reduce="amax")
                 top = torch.argsort(strength, descending=True)[:room]
                 centres, feats, new_tags = centres[top], feats[top], new_tags[top]
-            field.add(centres, feats, torch.full((centres.shape[0], 6), math.log(size), device=centres.device), optimizer)
+            field.add(centres, feats, centres.new_full((centres.shape[0], 6), math.log(size)), optimizer)
             self.extend(centres.shape[0])
             tags = torch.cat([tags, new_tags])
             total += centres.shape[0]

@@ -116,4 +116,5 @@ class PrimitiveParams(nn.Module):
     def resize_(self, n: int) -> None:
         """Re-create empty tensors of length n (before load_state_dict of a checkpoint)."""
         for k, s in self.shapes.items():
-            self.params[k] = nn.Parameter(torch.zeros((n, *s), device=self.params[k].device))
+            old = self.params[k]
+            self.params[k] = nn.Parameter(torch.zeros((n, *s), dtype=old.dtype, device=old.device))

@@ -83,7 +83,8 @@ class PlainGaussians(SceneModel):
         if xyz.shape[0] == 0:
             return 0
         room = self.max_gaussians - len(self.gs)
-        xyz, rgb, kf_ids = xyz[:room].float(), rgb[:room].float(), kf_ids[:room]
+        like = self.gs["means"]  # new rows take the parameters' dtype and device
+        xyz, rgb, kf_ids = xyz[:room].to(like), rgb[:room].to(like), kf_ids[:room]
         m = xyz.shape[0]
         if m == 0:
             return 0
@@ -91,10 +92,10 @@ class PlainGaussians(SceneModel):
         rows = {
             "means": xyz,
             "log_scales": torch.log(torch.sqrt(d2)).unsqueeze(1).repeat(1, 3),
-            "quats": torch.tensor([1.0, 0, 0, 0], device=xyz.device).repeat(m, 1),
-            "opacities": torch.full((m, 1), _logit(self.init_opacity), device=xyz.device),
+            "quats": xyz.new_tensor([1.0, 0, 0, 0]).repeat(m, 1),
+            "opacities": xyz.new_full((m, 1), _logit(self.init_opacity)),
             "sh_dc": rgb_to_sh_dc(rgb).unsqueeze(1),
-            "sh_rest": torch.zeros(m, self.gs.shapes["sh_rest"][0], 3, device=xyz.device),
+            "sh_rest": xyz.new_zeros(m, self.gs.shapes["sh_rest"][0], 3),
         }
         self.gs.extend(rows, optimizer)
         self._extend_buffers(kf_ids.to(torch.int64))
@@ -106,10 +107,11 @@ class PlainGaussians(SceneModel):
             mask = self.kf_tags == int(kf_id)
             if not bool(mask.any()):
                 continue
-            R, _, s = split_similarity(T.float())
+            T = T.to(self.gs["means"])
+            R, _, s = split_similarity(T)
             qR = rotmat_to_quat(R)
             with torch.no_grad():
-                self.gs["means"][mask] = apply_similarity(T.float(), self.gs["means"][mask])
+                self.gs["means"][mask] = apply_similarity(T, self.gs["means"][mask])
                 self.gs["quats"][mask] = quat_multiply(qR.expand(int(mask.sum()), 4), self.gs["quats"][mask])
                 self.gs["log_scales"][mask] += math.log(s)
             moved += int(mask.sum())
@@ -166,10 +168,10 @@ class PlainGaussians(SceneModel):
             return
         h, w = render.image.shape[:2]
         visible = render.radii > 0
-        ndc = grad.detach() * torch.tensor([w / 2.0, h / 2.0], device=grad.device)
-        self.grad_accum[visible] += ndc[visible].norm(dim=-1)
+        ndc = grad.detach() * grad.new_tensor([w / 2.0, h / 2.0])
+        self.grad_accum[visible] += ndc[visible].norm(dim=-1).to(self.grad_accum)
         self.grad_count[visible] += 1
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], render.radii[visible].float())
+        self.max_radii[visible] = torch.maximum(self.max_radii[visible], render.radii[visible].to(self.max_radii))
 
     # -- densification --------------------------------------------------------------------------
     def maintain(self, step, optimizer) -> dict[str, float]:
@@ -232,7 +234,7 @@ class PlainGaussians(SceneModel):
         self.kf_tags = torch.cat([self.kf_tags, tags.to(self.kf_tags.device)])
         for name in ("grad_accum", "grad_count", "max_radii"):
             buf = getattr(self, name)
-            setattr(self, name, torch.cat([buf, torch.zeros(m, device=buf.device)]))
+            setattr(self, name, torch.cat([buf, buf.new_zeros(m)]))
 
     def _keep(self, keep: torch.Tensor, optimizer) -> None:
         self.gs.keep(keep, optimizer)
@@ -252,9 +254,9 @@ class PlainGaussians(SceneModel):
     def resize_for_state(self, state_dict) -> None:
         n = state_dict["gs.params.means"].shape[0]
         self.gs.resize_(n)
-        self.kf_tags = torch.zeros(n, dtype=torch.int64, device=self.kf_tags.device)
+        self.kf_tags = self.kf_tags.new_zeros(n)
         for name in ("grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, torch.zeros(n, device=self.kf_tags.device))
+            setattr(self, name, getattr(self, name).new_zeros(n))
 
     def export_ply(self, path: str | Path, view: View) -> int:
         g = self.gs

@@ -107,7 +107,7 @@ class SegsModel(SceneModel):
     def add_points(self, xyz, rgb, kf_ids, optimizer) -> int:
         """SEPM: voxelize new points, drop voxels that hold an anchor, append the rest."""
         if xyz.shape[0]:
-            self._pending.append((xyz.float(), kf_ids.to(torch.int64)))
+            self._pending.append((xyz.to(self.field.xyz), kf_ids.to(torch.int64)))
         if sum(p.shape[0] for p, _ in self._pending) < self.min_new_points and len(self.field):
             return 0
         pts = torch.cat([p for p, _ in self._pending]) if self._pending else xyz.new_zeros((0, 3))
@@ -119,7 +119,7 @@ class SegsModel(SceneModel):
             return 0
         centres, ok = centres[:m], (cell >= 0) & (cell < m)
         new_tags = torch.zeros(m, dtype=torch.int64, device=pts.device).scatter_(0, cell[ok], tags[ok])
-        feats = torch.zeros(m, self.field.feature_dim, device=pts.device)
+        feats = pts.new_zeros(m, self.field.feature_dim)
         self.field.add(centres, feats, initial_log_scales(centres, self.field.xyz), optimizer)
         self.densifier.extend(m)
         self.kf_tags = torch.cat([self.kf_tags, new_tags])
@@ -132,9 +132,10 @@ class SegsModel(SceneModel):
             mask = self.kf_tags == int(kf_id)
             if not bool(mask.any()):
                 continue
-            R, _, s = split_similarity(T.float())
+            T = T.to(self.field.xyz)
+            R, _, s = split_similarity(T)
             with torch.no_grad():
-                self.field.xyz[mask] = apply_similarity(T.float(), self.field.xyz[mask])
+                self.field.xyz[mask] = apply_similarity(T, self.field.xyz[mask])
                 ls = self.field.params["log_scales"]
                 old = torch.exp(ls[mask][:, :3])
                 ls[mask] += math.log(s)
@@ -224,10 +225,9 @@ class SegsModel(SceneModel):
     def resize_for_state(self, state_dict) -> None:
         n = state_dict["field.params.params.features"].shape[0]
         self.field.params.resize_(n)
-        dev = self.field.xyz.device
-        self.field.xyz = torch.zeros(n, 3, device=dev)
+        self.field.xyz = self.field.xyz.new_zeros(n, 3)
         self.densifier.resize_(n)
-        self.kf_tags = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.kf_tags = self.kf_tags.new_zeros(n)
         if "appearance.centers" in state_dict:
             self.appearance.centers = torch.zeros_like(state_dict["appearance.centers"])
             self.appearance.center_ids = torch.zeros_like(state_dict["appearance.center_ids"])
