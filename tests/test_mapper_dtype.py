@@ -56,7 +56,7 @@ def test_segs_anchors_grow_and_prune_in_float64(device):
     assert added > 0
     opt = make_adam(model.param_groups())
     with torch.no_grad():  # Gaussians away from their anchors, so that growth finds empty cells
-        model.field.params["offsets"].normal_(0.0, 2.0)
+        model.field.rows.offsets.normal_(0.0, 2.0)
     w2c = torch.eye(4, dtype=torch.float64, device=device)
     for step in range(1, 11):
         decoded = model.decode(View(w2c, CAMERA, 0), step)

@@ -56,7 +56,7 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     assert ckpt.is_file()
     state = torch.load(ckpt, weights_only=False)
     assert state["global_step"] == 20
-    n_anchors = state["state_dict"]["model.field.xyz"].shape[0]
+    n_anchors = state["state_dict"]["model.field.rows.xyz"].shape[0]
 
     second = tiny_cfg("trainer.max_steps=30", f"ckpt_path={ckpt}", "eval.enabled=false", out=tmp_path / "b")
     _, _, resumed, bridge, trainer2 = build(second)

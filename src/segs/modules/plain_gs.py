@@ -14,8 +14,10 @@ import torch.nn.functional as F
 from segs.errors import ConfigError
 from segs.modules import losses
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
-from segs.modules.geometry import apply_similarity, knn_mean_sq_dist, quat_multiply, quat_to_rotmat, rotmat_to_quat, split_similarity
-from segs.modules.optim import LrSchedule, PrimitiveParams
+from segs.modules.densification import AdaptiveDensity
+from segs.modules.geometry import apply_similarity, knn_mean_sq_dist, quat_multiply, rotmat_to_quat, split_similarity
+from segs.modules.optim import LrSchedule
+from segs.modules.rows import FLOAT, INDEX, PrimitiveRows
 from segs.modules.scene_model import Decoded, SceneModel, View
 from segs.modules.sh import eval_sh
 
@@ -27,9 +29,9 @@ def _logit(p: float) -> float:
 class PlainGaussians(SceneModel):
     """Unstructured 3D Gaussians with SH colours.
 
-    Per Gaussian: means [N,3], log_scales [N,3], quats [N,4] (wxyz, unnormalised), opacity
-    logits [N,1], sh_dc [N,1,3], sh_rest [N,(D+1)^2-1,3]; buffers: creating kf id [N] and the
-    densification statistics.
+    Rows per Gaussian (one PrimitiveRows store `gs`): parameters means [3], log_scales [3],
+    quats [4] (wxyz, unnormalised), opacity logits [1], sh_dc [1,3], sh_rest [(D+1)^2-1,3];
+    buffers kf_tag (creating keyframe) and the statistics grad_accum, grad_count, max_radii.
     """
 
     def __init__(
@@ -68,15 +70,17 @@ class PlainGaussians(SceneModel):
             self.max_gaussians = min(max_gaussians, max(int(budget_mb * 1e6 / 4 // floats), 1))
         if total_steps <= 0 or reference_steps <= 0:
             raise ConfigError(f"model.total_steps={total_steps}, reference_steps={reference_steps}: expected > 0")
-        self.lr, self.densify_cfg, self.total_steps = lr, d, total_steps
+        self.lr, self.total_steps = lr, total_steps
+        self.densify = AdaptiveDensity(**{"from_step": 500, "until_step": 15000, "interval": 100, "scale_interval": False,
+                                          "grad_threshold": 2e-4, "percent_dense": 0.01, "opacity_reset_interval": 3000,
+                                          "min_opacity": 0.005, "max_screen_radius": 20.0, **d})  # fmt: skip
         self.scale = total_steps / reference_steps
         k_rest = (sh_degree + 1) ** 2 - 1
-        self.gs = PrimitiveParams(
-            {"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (1,), "sh_dc": (1, 3), "sh_rest": (k_rest, 3)},
+        self.gs = PrimitiveRows(
+            params={"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (1,), "sh_dc": (1, 3), "sh_rest": (k_rest, 3)},
+            buffers={"kf_tag": ((), INDEX), "grad_accum": ((), FLOAT), "grad_count": ((), FLOAT), "max_radii": ((), FLOAT)},
             prefix="gs.",
         )
-        for name in ("kf_tags", "grad_accum", "grad_count", "max_radii"):
-            self.register_buffer(name, torch.zeros(0, dtype=torch.int64 if name == "kf_tags" else torch.float32))
 
     # -- bridge ---------------------------------------------------------------------------------
     def add_points(self, xyz, rgb, kf_ids, optimizer) -> int:
@@ -95,16 +99,15 @@ class PlainGaussians(SceneModel):
             "quats": xyz.new_tensor([1.0, 0, 0, 0]).repeat(m, 1),
             "opacities": xyz.new_full((m, 1), _logit(self.init_opacity)),
             "sh_dc": rgb_to_sh_dc(rgb).unsqueeze(1),
-            "sh_rest": xyz.new_zeros(m, self.gs.shapes["sh_rest"][0], 3),
+            "sh_rest": xyz.new_zeros(m, self.gs.param_shapes["sh_rest"][0], 3),
+            "kf_tag": kf_ids,
         }
-        self.gs.extend(rows, optimizer)
-        self._extend_buffers(kf_ids.to(torch.int64))
-        return m
+        return self.gs.add(rows, optimizer)
 
     def correct_map(self, transforms, optimizer) -> int:
         moved = 0
         for kf_id, T in transforms.items():
-            mask = self.kf_tags == int(kf_id)
+            mask = self.gs.kf_tag == int(kf_id)
             if not bool(mask.any()):
                 continue
             T = T.to(self.gs["means"])
@@ -163,83 +166,22 @@ class PlainGaussians(SceneModel):
         return terms
 
     def after_backward(self, decoded, render, step) -> None:
-        grad = render.means2d.grad
-        if grad is None or grad.shape[0] != len(self.gs):
-            return
         h, w = render.image.shape[:2]
-        visible = render.radii > 0
-        ndc = grad.detach() * grad.new_tensor([w / 2.0, h / 2.0])
-        self.grad_accum[visible] += ndc[visible].norm(dim=-1).to(self.grad_accum)
-        self.grad_count[visible] += 1
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], render.radii[visible].to(self.max_radii))
+        self.densify.record(self.gs, render.means2d.grad, render.radii, w, h)
 
     # -- densification --------------------------------------------------------------------------
     def maintain(self, step, optimizer) -> dict[str, float]:
-        d = self.densify_cfg
-        start, until = self._at(d.get("from_step", 500)), self._at(d.get("until_step", 15000))
-        reset = self._at(d.get("opacity_reset_interval", 3000))
+        d = self.densify
+        start, until, reset = self._at(d.from_step), self._at(d.until_step), self._at(d.opacity_reset_interval)
         # as SEGS's growth: densify every `interval` steps (statistics of ~100 views) unless scaled
-        interval = self._at(d.get("interval", 100)) if d.get("scale_interval", False) else int(d.get("interval", 100))
+        interval = self._at(d.interval) if d.scale_interval else int(d.interval)
         out: dict[str, float] = {}
         if start <= step < until and step % interval == 0 and len(self.gs):
-            out = self._densify_and_prune(step > reset, optimizer)
+            out = d.adjust(self.gs, optimizer, self.scene_extent, self.max_gaussians, prune_big=step > reset)
         if reset > 0 and start <= step < until and step % reset == 0 and len(self.gs):
-            capped = torch.minimum(self.gs["opacities"].detach(), torch.full_like(self.gs["opacities"], _logit(0.01)))
+            capped = torch.minimum(self.gs.opacities.detach(), torch.full_like(self.gs.opacities, _logit(0.01)))
             self.gs.assign("opacities", capped, optimizer, reset_state=True)
         return out
-
-    def _densify_and_prune(self, prune_big: bool, optimizer) -> dict[str, float]:
-        d = self.densify_cfg
-        grads = self.grad_accum / self.grad_count.clamp_min(1)
-        big = torch.exp(self.gs["log_scales"].detach()).max(1).values > d.get("percent_dense", 0.01) * self.scene_extent
-        hot = grads >= d.get("grad_threshold", 2e-4)
-        room = self.max_gaussians - len(self.gs)
-        clone, split = hot & ~big, hot & big
-        if int(clone.sum()) + int(split.sum()) > room:  # keep the strongest candidates under the cap
-            order = torch.argsort(torch.where(hot, grads, torch.full_like(grads, -1.0)), descending=True)
-            allowed = torch.zeros_like(hot)
-            allowed[order[: max(room, 0)]] = True
-            clone, split = clone & allowed, split & allowed
-        n_clone, n_split = int(clone.sum()), int(split.sum())
-        rows = self._clone_rows(clone)
-        split_rows = self._split_rows(split)
-        new = {k: torch.cat([rows[k], split_rows[k]]) for k in rows}
-        tags = torch.cat([self.kf_tags[clone], self.kf_tags[split].repeat(2)])
-        self.gs.extend(new, optimizer)
-        self._extend_buffers(tags)
-        op = torch.sigmoid(self.gs["opacities"].detach()).squeeze(1)
-        drop = op < d.get("min_opacity", 0.005)
-        drop[: split.shape[0]] |= split  # split parents are replaced by their two children
-        if prune_big:
-            drop |= self.max_radii > d.get("max_screen_radius", 20.0)
-            drop |= torch.exp(self.gs["log_scales"].detach()).max(1).values > 0.1 * self.scene_extent
-        self._keep(~drop, optimizer)
-        self.grad_accum.zero_(), self.grad_count.zero_(), self.max_radii.zero_()
-        return {"cloned": n_clone, "split": n_split, "pruned": int(drop.sum())}
-
-    def _clone_rows(self, mask) -> dict[str, torch.Tensor]:
-        return {k: v.detach()[mask] for k, v in self.gs.params.items()}
-
-    def _split_rows(self, mask, n: int = 2) -> dict[str, torch.Tensor]:
-        rows = {k: v.detach()[mask].repeat(n, *([1] * (v.dim() - 1))) for k, v in self.gs.params.items()}
-        scales = torch.exp(rows["log_scales"])
-        offsets = torch.randn_like(scales) * scales
-        rot = quat_to_rotmat(rows["quats"])
-        rows["means"] = rows["means"] + (rot @ offsets.unsqueeze(-1)).squeeze(-1)
-        rows["log_scales"] = torch.log(scales / (0.8 * n))
-        return rows
-
-    def _extend_buffers(self, tags: torch.Tensor) -> None:
-        m = tags.shape[0]
-        self.kf_tags = torch.cat([self.kf_tags, tags.to(self.kf_tags.device)])
-        for name in ("grad_accum", "grad_count", "max_radii"):
-            buf = getattr(self, name)
-            setattr(self, name, torch.cat([buf, buf.new_zeros(m)]))
-
-    def _keep(self, keep: torch.Tensor, optimizer) -> None:
-        self.gs.keep(keep, optimizer)
-        for name in ("kf_tags", "grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, getattr(self, name)[keep])
 
     @torch.no_grad()
     def count_active(self, view: View, threshold: float = 0.005) -> int:
@@ -252,11 +194,7 @@ class PlainGaussians(SceneModel):
         return {"anchors": 0, "gaussians": len(self.gs), "params": n_params, "mb": n_params * 4 / 1e6}
 
     def resize_for_state(self, state_dict) -> None:
-        n = state_dict["gs.params.means"].shape[0]
-        self.gs.resize_(n)
-        self.kf_tags = self.kf_tags.new_zeros(n)
-        for name in ("grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, getattr(self, name).new_zeros(n))
+        self.gs.resize(state_dict["gs.means"].shape[0])
 
     def export_ply(self, path: str | Path, view: View) -> int:
         g = self.gs

@@ -15,7 +15,7 @@ from segs.errors import ConfigError
 from segs.modules import losses
 from segs.modules.afme import KINDS, AppearanceEncoder
 from segs.modules.anchors import AnchorField
-from segs.modules.densification import AnchorDensifier
+from segs.modules.densification import AnchorGrowth
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
 from segs.modules.fpr import MODES, fpr_loss
 from segs.modules.geometry import apply_similarity, split_similarity
@@ -47,7 +47,9 @@ class SegsModel(SceneModel):
         app = {"kind": "linear", "dim": 32, "hidden": 32, **dict(appearance or {})}
         self.fpr = {"enabled": True, "scales": 3, "mode": "high", "hp_ratio": 0.4, "lp_ratio": 0.1, "from_step": 5000, "until_step": 15000, **dict(fpr or {})}
         self.loss_w = {"lambda_dssim": 0.2, "lambda_vol": 0.01, "lambda_hf": 0.01, **dict(loss or {})}
-        self.dcfg = {"stats_from": 500, "grow_from": 1500, "until": 25000, "interval": 100, "scale_interval": False, **dict(densify or {})}
+        self.dcfg = {"stats_from": 500, "grow_from": 1500, "until": 25000, "interval": 100, "scale_interval": False,
+                     "grad_threshold": 2e-4, "update_depth": 3, "init_factor": 16, "hierarchy_factor": 4, "min_opacity": 0.005,
+                     "success_threshold": 0.8, **dict(densify or {})}  # fmt: skip
         self.lr = {**_LR_DEFAULTS, **dict(lr or {})}
         self._validate(k, feature_dim, hidden, voxel_size, max_anchors, app, reference_steps, total_steps)
         self.scale = total_steps / reference_steps
@@ -55,12 +57,11 @@ class SegsModel(SceneModel):
         a_dim = 0 if app["kind"] == "none" else int(app["dim"])
         self.field = AnchorField(k, feature_dim, hidden, a_dim, use_distance, frustum_margin)
         self.appearance = AppearanceEncoder(app["kind"], int(app["dim"]), int(app["hidden"]), int(app.get("max_views", 4096)))
-        grow = {k_: v for k_, v in self.dcfg.items() if k_ not in ("stats_from", "grow_from", "until", "interval", "scale_interval")}
-        self.densifier = AnchorDensifier(k, voxel_size, max_anchors=max_anchors, **grow)
+        self.growth = AnchorGrowth(**self.dcfg)
+        self.max_anchors = max_anchors
         if budget_mb is not None:
             _check("budget_mb", budget_mb > 0, budget_mb, "> 0 (MB) or null")
-            self.densifier.max_anchors = min(max_anchors, self.anchors_for_budget(budget_mb))
-        self.register_buffer("kf_tags", torch.zeros(0, dtype=torch.int64))
+            self.max_anchors = min(max_anchors, self.anchors_for_budget(budget_mb))
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.last_rendered = 0
 
@@ -95,9 +96,9 @@ class SegsModel(SceneModel):
 
     def _interval(self) -> int:
         """Steps between grow / prune rounds: the reference's 100 views of statistics, or scaled."""
-        if self.dcfg["scale_interval"]:
-            return max(self._at(self.dcfg["interval"]), 1)
-        return int(self.dcfg["interval"])
+        if self.growth.scale_interval:
+            return max(self._at(self.growth.interval), 1)
+        return int(self.growth.interval)
 
     def _at(self, step_ref: float) -> int:
         """A reference-run iteration number in this run's steps."""
@@ -114,32 +115,29 @@ class SegsModel(SceneModel):
         tags = torch.cat([t for _, t in self._pending]) if self._pending else kf_ids.new_zeros(0)
         self._pending = []
         centres, cell = voxelize(pts, self.voxel_size, existing=self.field.xyz)
-        m = min(centres.shape[0], max(self.densifier.max_anchors - len(self.field), 0))  # anchor cap
+        m = min(centres.shape[0], max(self.max_anchors - len(self.field), 0))  # anchor cap
         if m == 0:
             return 0
         centres, ok = centres[:m], (cell >= 0) & (cell < m)
         new_tags = torch.zeros(m, dtype=torch.int64, device=pts.device).scatter_(0, cell[ok], tags[ok])
         feats = pts.new_zeros(m, self.field.feature_dim)
-        self.field.add(centres, feats, initial_log_scales(centres, self.field.xyz), optimizer)
-        self.densifier.extend(m)
-        self.kf_tags = torch.cat([self.kf_tags, new_tags])
-        return m
+        return self.field.add(centres, feats, initial_log_scales(centres, self.field.xyz), new_tags, optimizer)
 
     def correct_map(self, transforms, optimizer) -> int:
         """Move the anchors created from each corrected keyframe's points (positions, scales, offsets)."""
         moved = 0
         for kf_id, T in transforms.items():
-            mask = self.kf_tags == int(kf_id)
+            mask = self.field.rows.kf_tag == int(kf_id)
             if not bool(mask.any()):
                 continue
             T = T.to(self.field.xyz)
             R, _, s = split_similarity(T)
             with torch.no_grad():
                 self.field.xyz[mask] = apply_similarity(T, self.field.xyz[mask])
-                ls = self.field.params["log_scales"]
+                ls = self.field.rows.log_scales
                 old = torch.exp(ls[mask][:, :3])
                 ls[mask] += math.log(s)
-                off = self.field.params["offsets"]
+                off = self.field.rows.offsets
                 world = off[mask] * old[:, None, :]  # [M,k,3] offset vectors in world units
                 off[mask] = (s * world @ R.T) / (old[:, None, :] * s)
             moved += int(mask.sum())
@@ -152,7 +150,7 @@ class SegsModel(SceneModel):
     # -- optimisation ---------------------------------------------------------------------------
     def param_groups(self) -> list[dict]:
         lr = self.lr
-        groups = self.field.params.groups(
+        groups = self.field.rows.groups(
             {"features": lr["features"], "offsets": lr["offsets"] * self.scene_extent, "log_scales": lr["scales"]}
         )
         for name, params in self.field.decoder_groups().items():
@@ -200,16 +198,15 @@ class SegsModel(SceneModel):
         return terms
 
     def after_backward(self, decoded, render, step) -> None:
-        if self._at(self.dcfg["stats_from"]) <= step < self._at(self.dcfg["until"]):
+        if self._at(self.growth.stats_from) <= step < self._at(self.growth.until):
             h, w = render.image.shape[:2]
-            self.densifier.record(decoded.aux["info"], render.means2d.grad, render.radii, w, h)
+            self.growth.record(self.field, decoded.aux["info"], render.means2d.grad, render.radii, w, h)
 
     def maintain(self, step, optimizer) -> dict[str, float]:
         interval = self._interval()
-        if not (self._at(self.dcfg["grow_from"]) < step < self._at(self.dcfg["until"])) or step % interval:
+        if not (self._at(self.growth.grow_from) < step < self._at(self.growth.until)) or step % interval:
             return {}
-        out, self.kf_tags = self.densifier.adjust(self.field, self.kf_tags, interval, optimizer)
-        return out
+        return self.growth.adjust(self.field, optimizer, interval, self.voxel_size, self.max_anchors)
 
     # -- bookkeeping ----------------------------------------------------------------------------
     @torch.no_grad()
@@ -223,11 +220,7 @@ class SegsModel(SceneModel):
                 "params": n_params, "mb": (n_params + self.field.xyz.numel()) * 4 / 1e6}  # fmt: skip
 
     def resize_for_state(self, state_dict) -> None:
-        n = state_dict["field.params.params.features"].shape[0]
-        self.field.params.resize_(n)
-        self.field.xyz = self.field.xyz.new_zeros(n, 3)
-        self.densifier.resize_(n)
-        self.kf_tags = self.kf_tags.new_zeros(n)
+        self.field.rows.resize(state_dict["field.rows.features"].shape[0])
         if "appearance.centers" in state_dict:
             self.appearance.centers = torch.zeros_like(state_dict["appearance.centers"])
             self.appearance.center_ids = torch.zeros_like(state_dict["appearance.center_ids"])
