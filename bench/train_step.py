@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from segs.callbacks.bridge import SlamBridge
 from segs.config import compose, instantiate, make_sequence
+from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.mapping import MappingModule
 from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.scene_model import View
@@ -35,7 +35,7 @@ def build(model: str, steps: int, backend: str, device: str = "cpu"):
                   + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []), output_dir="/tmp/segs_bench")  # fmt: skip
     seq = make_sequence(cfg.data)
     frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
-    module = MappingModule(instantiate(cfg.model), raster=OmegaConf.to_container(cfg.raster), **cfg.mapping)
+    module = MappingModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
     module.to(device)
     bridge = SlamBridge(seq, frontend, progress=False)
     for _ in range(len(seq)):
@@ -60,7 +60,7 @@ def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
     dec = module.model.decode(view, step)
     t1 = clock()
     out = rasterize(dec.means, dec.quats, dec.scales, dec.opacities, dec.colors, view.w2c, view.K.to(dev), view.camera.width,
-                    view.camera.height, background=torch.zeros(3, device=dev), backend=module.raster["backend"])  # fmt: skip
+                    view.camera.height, background=torch.zeros(3, device=dev), backend=module.raster.backend)  # fmt: skip
     t2 = clock()
     terms = module.model.loss(out, gt, dec, step)
     t3 = clock()

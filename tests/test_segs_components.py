@@ -7,6 +7,7 @@ import torch
 from segs.data.frame import Camera
 from segs.modules.afme import AppearanceEncoder, canonical_pose
 from segs.modules.anchors import AnchorField
+from segs.modules.config import build_model, load_model_node
 from segs.modules.densification import AnchorGrowth
 from segs.modules.fpr import fpr_loss, highpass_mask, lowpass_mask
 from segs.modules.optim import make_adam
@@ -204,9 +205,7 @@ def test_fused_decoders_equal_the_three_mlps():
 
 
 def test_segs_model_sepm_batches_and_loop_correction():
-    from segs.modules.segs_model import SegsModel
-
-    model = SegsModel(k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3)
+    model = build_model(load_model_node("segs", k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3))
     pts = torch.tensor([[0.0, 0, 2], [0.01, 0, 2], [1.0, 0, 2]])
     assert model.add_points(pts, torch.rand(3, 3), torch.tensor([0, 0, 0]), None) == 2  # two voxels
     assert model.add_points(pts[:1] + 1.0, torch.rand(1, 3), torch.tensor([1]), None) == 0  # waits for 3 points

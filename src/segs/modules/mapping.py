@@ -13,6 +13,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.keyframes import Keyframe, KeyframeStore
 from segs.modules.metrics import psnr
 from segs.modules.optim import make_adam, set_learning_rates
@@ -25,19 +26,18 @@ log = logging.getLogger(__name__)
 class MappingModule(L.LightningModule):
     """Trains a SceneModel on keyframes pushed by the SLAM bridge.
 
-    raster: {"backend", "near", "far", "background": [3]}; view_budget: uses per keyframe before
-    every keyframe gets one more (reference: 2 for TUM/EuRoC, 8 for Replica).
+    mapping.view_budget: uses per keyframe before every keyframe gets one more (reference: 2 for
+    TUM/EuRoC, 8 for Replica); seed: the view sampler's.
     """
 
-    def __init__(self, model: SceneModel, raster: dict | None = None, view_budget: int = 2, seed: int = 0,
-                 min_scene_extent: float = 0.5, adam_eps: float = 1e-15):  # fmt: skip
+    def __init__(self, model: SceneModel, mapping: MappingConfig, raster: RasterConfig, seed: int):
         super().__init__()
         self.automatic_optimization = False
         self.model = model
-        self.raster = {"backend": "auto", "near": 0.01, "far": 100.0, "background": [0.0, 0.0, 0.0], **dict(raster or {})}
-        self.store = KeyframeStore(view_budget, seed)
-        self.min_scene_extent = min_scene_extent
-        self.adam_eps = adam_eps
+        self.raster = raster
+        self.store = KeyframeStore(mapping.view_budget, seed)
+        self.min_scene_extent = mapping.min_scene_extent
+        self.adam_eps = mapping.adam_eps
         self.iteration_ms: list[float] = []
         self.loss_history: list[float] = []
 
@@ -81,11 +81,12 @@ class MappingModule(L.LightningModule):
     def render(self, view: View, step: int | None = None):
         """Decode and rasterize one view; returns (rasterizer output, Decoded)."""
         decoded = self.model.decode(view, self.global_step if step is None else step)
-        bg = torch.tensor(self.raster["background"], dtype=torch.float32, device=self.device)
+        r = self.raster
+        bg = torch.tensor(r.background, dtype=torch.float32, device=self.device)
         out = rasterize(
             decoded.means, decoded.quats, decoded.scales, decoded.opacities, decoded.colors,
             view.w2c.to(self.device), view.K.to(self.device), view.camera.width, view.camera.height,
-            background=bg, near=self.raster["near"], far=self.raster["far"], backend=self.raster["backend"],
+            background=bg, near=r.near, far=r.far, backend=r.backend,
         )  # fmt: skip
         return out, decoded
 

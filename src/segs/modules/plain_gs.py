@@ -11,10 +11,9 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from segs.errors import ConfigError
 from segs.modules import losses
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
-from segs.modules.densification import AdaptiveDensity
+from segs.modules.config import PlainConfig
 from segs.modules.geometry import apply_similarity, knn_mean_sq_dist, quat_multiply, rotmat_to_quat, split_similarity
 from segs.modules.optim import LrSchedule
 from segs.modules.rows import FLOAT, INDEX, PrimitiveRows
@@ -34,48 +33,17 @@ class PlainGaussians(SceneModel):
     buffers kf_tag (creating keyframe) and the statistics grad_accum, grad_count, max_radii.
     """
 
-    def __init__(
-        self,
-        sh_degree: int = 3,
-        sh_increase_every: int = 1000,
-        lambda_dssim: float = 0.2,
-        lambda_depth: float = 0.0,
-        init_opacity: float = 0.1,
-        max_gaussians: int = 300_000,
-        lr: dict | None = None,
-        densify: dict | None = None,
-        total_steps: int = 30000,
-        reference_steps: int = 30000,
-        budget_mb: float | None = None,
-    ):
+    def __init__(self, cfg: PlainConfig):
         super().__init__()
-        lr = dict(lr or {})
-        d = dict(densify or {})
-        if not 0 <= sh_degree <= 3:
-            raise ConfigError(f"model.sh_degree={sh_degree} is out of range: expected 0..3")
-        if not 0 < init_opacity < 1:
-            raise ConfigError(f"model.init_opacity={init_opacity} is out of range: expected (0, 1)")
-        if max_gaussians <= 0:
-            raise ConfigError(f"model.max_gaussians={max_gaussians} is out of range: expected > 0")
-        for k, v in lr.items():
-            if v is not None and v < 0:
-                raise ConfigError(f"model.lr.{k}={v} is out of range: expected >= 0")
-        self.sh_degree, self.sh_increase_every = sh_degree, sh_increase_every
-        self.lambda_dssim, self.lambda_depth = lambda_dssim, lambda_depth
-        self.init_opacity, self.max_gaussians = init_opacity, max_gaussians
-        if budget_mb is not None:
-            if budget_mb <= 0:
-                raise ConfigError(f"model.budget_mb={budget_mb} is out of range: expected > 0 (MB) or null")
-            floats = 3 + 3 + 4 + 1 + 3 * (sh_degree + 1) ** 2  # means, scales, quats, opacity, SH
-            self.max_gaussians = min(max_gaussians, max(int(budget_mb * 1e6 / 4 // floats), 1))
-        if total_steps <= 0 or reference_steps <= 0:
-            raise ConfigError(f"model.total_steps={total_steps}, reference_steps={reference_steps}: expected > 0")
-        self.lr, self.total_steps = lr, total_steps
-        self.densify = AdaptiveDensity(**{"from_step": 500, "until_step": 15000, "interval": 100, "scale_interval": False,
-                                          "grad_threshold": 2e-4, "percent_dense": 0.01, "opacity_reset_interval": 3000,
-                                          "min_opacity": 0.005, "max_screen_radius": 20.0, **d})  # fmt: skip
-        self.scale = total_steps / reference_steps
-        k_rest = (sh_degree + 1) ** 2 - 1
+        self.sh_degree, self.sh_increase_every = cfg.sh_degree, cfg.sh_increase_every
+        self.lambda_dssim, self.lambda_depth = cfg.lambda_dssim, cfg.lambda_depth
+        self.init_opacity, self.max_gaussians = cfg.init_opacity, cfg.max_gaussians
+        if cfg.budget_mb is not None:
+            floats = 3 + 3 + 4 + 1 + 3 * (cfg.sh_degree + 1) ** 2  # means, scales, quats, opacity, SH
+            self.max_gaussians = min(cfg.max_gaussians, max(int(cfg.budget_mb * 1e6 / 4 // floats), 1))
+        self.lr, self.densify, self.total_steps = cfg.lr, cfg.densify, cfg.total_steps
+        self.scale = cfg.total_steps / cfg.reference_steps
+        k_rest = (cfg.sh_degree + 1) ** 2 - 1
         self.gs = PrimitiveRows(
             params={"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (1,), "sh_dc": (1, 3), "sh_rest": (k_rest, 3)},
             buffers={"kf_tag": ((), INDEX), "grad_accum": ((), FLOAT), "grad_count": ((), FLOAT), "max_radii": ((), FLOAT)},
@@ -122,20 +90,14 @@ class PlainGaussians(SceneModel):
 
     # -- optimisation ---------------------------------------------------------------------------
     def param_groups(self) -> list[dict]:
-        lrs = {
-            "means": self.lr.get("means", 1.6e-4) * self.scene_extent,
-            "log_scales": self.lr.get("scales", 5e-3),
-            "quats": self.lr.get("quats", 1e-3),
-            "opacities": self.lr.get("opacities", 0.05),
-            "sh_dc": self.lr.get("sh_dc", 2.5e-3),
-            "sh_rest": self.lr.get("sh_rest", 1.25e-4),
-        }
+        lr = self.lr
+        lrs = {"means": lr.means * self.scene_extent, "log_scales": lr.scales, "quats": lr.quats, "opacities": lr.opacities,
+               "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}  # fmt: skip
         return self.gs.groups(lrs)
 
     def lr_schedules(self) -> dict[str, LrSchedule]:
-        init = self.lr.get("means", 1.6e-4) * self.scene_extent
-        final = self.lr.get("means_final", 1.6e-6) * self.scene_extent
-        return {"gs.means": LrSchedule(init, final, self.total_steps)}
+        lr = self.lr
+        return {"gs.means": LrSchedule(lr.means * self.scene_extent, lr.means_final * self.scene_extent, self.total_steps)}
 
     def _at(self, step_ref: float) -> int:
         """A reference-run (30k) iteration number in this run's steps."""

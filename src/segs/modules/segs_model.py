@@ -12,75 +12,34 @@ from pathlib import Path
 import torch
 
 from segs.errors import ConfigError
+from segs.modules.config import SegsConfig
 from segs.modules import losses
-from segs.modules.afme import KINDS, AppearanceEncoder
+from segs.modules.afme import AppearanceEncoder
 from segs.modules.anchors import AnchorField
-from segs.modules.densification import AnchorGrowth
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
-from segs.modules.fpr import MODES, fpr_loss
+from segs.modules.fpr import fpr_loss
 from segs.modules.geometry import apply_similarity, split_similarity
 from segs.modules.optim import LrSchedule
 from segs.modules.scene_model import Decoded, SceneModel, View
 from segs.modules.sepm import initial_log_scales, voxelize
 
-_LR_DEFAULTS = {
-    "offsets": 0.01, "offsets_final": 1e-4, "features": 0.0075, "scales": 0.005,
-    "mlp_opacity": 0.002, "mlp_opacity_final": 2e-5, "mlp_cov": 0.004, "mlp_cov_final": 0.004,
-    "mlp_color": 0.008, "mlp_color_final": 5e-5, "appearance": 0.05, "appearance_final": 5e-4,
-}  # fmt: skip
-
-
-def _check(name: str, ok: bool, value, expected: str) -> None:
-    if not ok:
-        raise ConfigError(f"model.{name}={value!r} is out of range: expected {expected}")
-
-
 class SegsModel(SceneModel):
     """SEGS-SLAM's photorealistic map (see the module docstring for the parts)."""
 
-    def __init__(self, k: int = 10, feature_dim: int = 32, hidden: int = 32, use_distance: bool = False,
-                 voxel_size: float = 0.001, min_new_points: int = 10, max_anchors: int = 200_000,
-                 appearance: dict | None = None, fpr: dict | None = None, loss: dict | None = None,
-                 densify: dict | None = None, lr: dict | None = None, reference_steps: int = 30000,
-                 total_steps: int = 30000, frustum_margin: float = 0.15, budget_mb: float | None = None):  # fmt: skip
+    def __init__(self, cfg: SegsConfig):
         super().__init__()
-        app = {"kind": "linear", "dim": 32, "hidden": 32, **dict(appearance or {})}
-        self.fpr = {"enabled": True, "scales": 3, "mode": "high", "hp_ratio": 0.4, "lp_ratio": 0.1, "from_step": 5000, "until_step": 15000, **dict(fpr or {})}
-        self.loss_w = {"lambda_dssim": 0.2, "lambda_vol": 0.01, "lambda_hf": 0.01, **dict(loss or {})}
-        self.dcfg = {"stats_from": 500, "grow_from": 1500, "until": 25000, "interval": 100, "scale_interval": False,
-                     "grad_threshold": 2e-4, "update_depth": 3, "init_factor": 16, "hierarchy_factor": 4, "min_opacity": 0.005,
-                     "success_threshold": 0.8, **dict(densify or {})}  # fmt: skip
-        self.lr = {**_LR_DEFAULTS, **dict(lr or {})}
-        self._validate(k, feature_dim, hidden, voxel_size, max_anchors, app, reference_steps, total_steps)
-        self.scale = total_steps / reference_steps
-        self.total_steps, self.voxel_size, self.min_new_points = total_steps, voxel_size, min_new_points
-        a_dim = 0 if app["kind"] == "none" else int(app["dim"])
-        self.field = AnchorField(k, feature_dim, hidden, a_dim, use_distance, frustum_margin)
-        self.appearance = AppearanceEncoder(app["kind"], int(app["dim"]), int(app["hidden"]), int(app.get("max_views", 4096)))
-        self.growth = AnchorGrowth(**self.dcfg)
-        self.max_anchors = max_anchors
-        if budget_mb is not None:
-            _check("budget_mb", budget_mb > 0, budget_mb, "> 0 (MB) or null")
-            self.max_anchors = min(max_anchors, self.anchors_for_budget(budget_mb))
+        self.fpr, self.loss_w, self.growth, self.lr = cfg.fpr, cfg.loss, cfg.densify, cfg.lr
+        self.scale = cfg.total_steps / cfg.reference_steps
+        self.total_steps, self.voxel_size, self.min_new_points = cfg.total_steps, cfg.voxel_size, cfg.min_new_points
+        app = cfg.appearance
+        a_dim = 0 if app.kind == "none" else app.dim
+        self.field = AnchorField(cfg.k, cfg.feature_dim, cfg.hidden, a_dim, cfg.use_distance, cfg.frustum_margin)
+        self.appearance = AppearanceEncoder(app.kind, app.dim, app.hidden, app.max_views)
+        self.max_anchors = cfg.max_anchors
+        if cfg.budget_mb is not None:
+            self.max_anchors = min(cfg.max_anchors, self.anchors_for_budget(cfg.budget_mb))
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.last_rendered = 0
-
-    def _validate(self, k, feature_dim, hidden, voxel_size, max_anchors, app, reference_steps, total_steps) -> None:
-        _check("k", isinstance(k, int) and k > 0, k, "an integer > 0")
-        _check("feature_dim", feature_dim > 0, feature_dim, "> 0")
-        _check("hidden", hidden > 0, hidden, "> 0")
-        _check("voxel_size", voxel_size > 0, voxel_size, "> 0 (metres)")
-        _check("max_anchors", max_anchors > 0, max_anchors, "> 0")
-        _check("appearance.kind", app["kind"] in KINDS, app["kind"], f"one of {KINDS}")
-        _check("appearance.dim", app["kind"] == "none" or int(app["dim"]) > 0, app["dim"], "> 0")
-        _check("fpr.mode", self.fpr["mode"] in MODES, self.fpr["mode"], f"one of {MODES}")
-        _check("fpr.scales", int(self.fpr["scales"]) >= 1, self.fpr["scales"], ">= 1")
-        _check("densify.interval", self.dcfg["interval"] > 0, self.dcfg["interval"], "> 0")
-        _check("reference_steps", reference_steps > 0 and total_steps > 0, reference_steps, "> 0")
-        for name, v in self.lr.items():
-            _check(f"lr.{name}", v >= 0, v, ">= 0")
-        for name, v in self.loss_w.items():
-            _check(f"loss.{name}", v >= 0, v, ">= 0")
 
     def anchors_for_budget(self, budget_mb: float) -> int:
         """Largest anchor count whose model (anchors + decoders + embedding) fits in budget_mb."""
@@ -150,21 +109,19 @@ class SegsModel(SceneModel):
     # -- optimisation ---------------------------------------------------------------------------
     def param_groups(self) -> list[dict]:
         lr = self.lr
-        groups = self.field.rows.groups(
-            {"features": lr["features"], "offsets": lr["offsets"] * self.scene_extent, "log_scales": lr["scales"]}
-        )
+        groups = self.field.rows.groups({"features": lr.features, "offsets": lr.offsets * self.scene_extent, "log_scales": lr.scales})
         for name, params in self.field.decoder_groups().items():
-            groups.append({"name": name, "params": params, "lr": lr[name]})
+            groups.append({"name": name, "params": params, "lr": getattr(lr, name)})
         app = list(self.appearance.parameters())
         if app:
-            groups.append({"name": "appearance", "params": app, "lr": lr["appearance"]})
+            groups.append({"name": "appearance", "params": app, "lr": lr.appearance})
         return groups
 
     def lr_schedules(self) -> dict[str, LrSchedule]:
         lr, n = self.lr, self.total_steps
-        out = {"anchor.offsets": LrSchedule(lr["offsets"] * self.scene_extent, lr["offsets_final"] * self.scene_extent, n)}
+        out = {"anchor.offsets": LrSchedule(lr.offsets * self.scene_extent, lr.offsets_final * self.scene_extent, n)}
         for name in ("mlp_opacity", "mlp_cov", "mlp_color", "appearance"):
-            out[name] = LrSchedule(lr[name], lr[f"{name}_final"], n)
+            out[name] = LrSchedule(getattr(lr, name), getattr(lr, f"{name}_final"), n)
         return out
 
     def _on_device(self, view: View) -> View:
@@ -183,17 +140,16 @@ class SegsModel(SceneModel):
 
     def fpr_active(self, step: int) -> bool:
         f = self.fpr
-        return bool(f["enabled"]) and self._at(f["from_step"]) < step < self._at(f["until_step"])
+        return f.enabled and self._at(f.from_step) < step < self._at(f.until_step)
 
     def loss(self, render, gt, decoded, step, gt_depth=None) -> dict:
-        w = self.loss_w
-        terms = losses.photometric(render.image, gt, w["lambda_dssim"])
+        w, f = self.loss_w, self.fpr
+        terms = losses.photometric(render.image, gt, w.lambda_dssim)
         terms["volume"] = losses.volume(decoded.scales)
-        total = terms["photometric"] + w["lambda_vol"] * terms["volume"]
-        if self.fpr_active(step) and w["lambda_hf"] > 0:
-            f = self.fpr
-            terms["fpr"] = fpr_loss(render.image, gt, int(f["scales"]), f["mode"], f["hp_ratio"], f["lp_ratio"])
-            total = total + w["lambda_hf"] * terms["fpr"]
+        total = terms["photometric"] + w.lambda_vol * terms["volume"]
+        if self.fpr_active(step) and f.weight > 0:
+            terms["fpr"] = fpr_loss(render.image, gt, f.scales, f.mode, f.hp_ratio, f.lp_ratio)
+            total = total + f.weight * terms["fpr"]
         terms["total"] = total
         return terms
 
