@@ -22,7 +22,7 @@ import torch
 from segs.callbacks.bridge import SlamBridge
 from segs.config import compose, instantiate, make_sequence
 from segs.modules.config import build_model, mapping_config, raster_config
-from segs.modules.mapping import MappingModule
+from segs.modules.gaussian_mapper import GaussianMapperModule
 from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.scene_model import View
 from segs.raster import rasterize
@@ -35,7 +35,7 @@ def build(model: str, steps: int, backend: str, device: str = "cpu"):
                   + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []), output_dir="/tmp/segs_bench")  # fmt: skip
     seq = make_sequence(cfg.data)
     frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
-    module = MappingModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
+    module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
     module.to(device)
     bridge = SlamBridge(seq, frontend, progress=False)
     for _ in range(len(seq)):
@@ -49,11 +49,11 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
+def iteration(module: GaussianMapperModule, opt, step: int, timed: bool) -> dict:
     t = {}
     dev = str(module.device)
     clock = lambda: (_sync(dev), time.perf_counter())[1]  # noqa: E731
-    kf = module.store.sample()
+    kf = module.views.sample()
     view = View(kf.w2c.to(dev), kf.camera, kf.kf_id)
     gt = kf.rgb().to(dev)
     t0 = clock()

@@ -28,7 +28,7 @@ from segs.config import instantiate, make_sequence, user_errors_exit, validate
 from segs.errors import DataError, TrackingFailed
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
-from segs.modules.mapping import MappingModule
+from segs.modules.gaussian_mapper import GaussianMapperModule
 
 log = logging.getLogger("segs.train")
 
@@ -58,7 +58,7 @@ def build(cfg: DictConfig, session_start: float | None = None):
     if record is not None:
         check_resume(cfg.ckpt_path, record, identity)
     frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
-    module = MappingModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
+    module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
     bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(sequence=sequence, frontend=frontend)
     callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
     callbacks.append(RunRecord(identity, session_start))

@@ -65,7 +65,7 @@ def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", h
 def fpr_loss(render: torch.Tensor, gt: torch.Tensor, scales: int = 3, mode: str = "high", hp_ratio: float = 0.4, lp_ratio: float = 0.1) -> torch.Tensor:
     """sum_s 2^-s L_hf(down_s(render), down_s(gt)) for [H,W,C] images, s = 0..scales-1."""
     if mode not in MODES:
-        raise ValueError(f"fpr.mode must be one of {MODES}, got {mode!r}")
+        raise ValueError(f"model.fpr.mode must be one of {MODES}, got {mode!r}")
     r0 = render.permute(2, 0, 1).unsqueeze(0)
     g0 = gt.permute(2, 0, 1).unsqueeze(0)
     h, w = r0.shape[-2:]
