@@ -113,7 +113,8 @@ def main() -> None:
         print(f"| {m} | {r['gaussians']:.0f} | {r['anchors']} | {cells} | {1 / r['total']:.2f} |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"cpu": cpu, "gpu": gpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}, indent=2))
+    record = {"cpu": cpu, "gpu": gpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}
+    out.write_text(json.dumps(record, indent=2))
 
 
 if __name__ == "__main__":

@@ -6,8 +6,9 @@ import numpy as np
 import torch
 
 from segs.callbacks.bridge import SlamBridge
+from segs.config import model_node
 from segs.data.frame import Camera, Frame
-from segs.modules.config import build_model, load_model_node, mapping_config, raster_config
+from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.contract import GaussianMapper, MapCounts, TrainingView
 from segs.modules.gaussian_mapper import GaussianMapperModule
 from segs.slam.base import MapUpdate
@@ -77,7 +78,7 @@ def _pose(x: float) -> np.ndarray:
 
 
 def test_the_mapper_module_implements_the_contract():
-    node = load_model_node("segs", k=2, feature_dim=4, hidden=4)
+    node = model_node("segs", k=2, feature_dim=4, hidden=4)
     mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)

@@ -7,12 +7,14 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from segs.config import model_node
 from segs.data.frame import Camera
-from segs.modules.config import build_model, load_model_node
+from segs.modules.config import build_model
 from segs.modules.optim import make_adam
 from segs.modules.scene_model import View
 
-DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")])]
+NO_CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, NO_CUDA])]
 CAMERA = Camera(fx=60.0, fy=60.0, cx=32.0, cy=24.0, width=64, height=48)
 
 
@@ -47,8 +49,8 @@ def _fake_render(n: int, value: float, device: str, dtype=torch.float32) -> Simp
 @pytest.mark.parametrize("device", DEVICES)
 def test_segs_anchors_grow_and_prune_in_float64(device):
     torch.manual_seed(0)
-    model = build_model(load_model_node("segs", k=4, feature_dim=8, hidden=8, voxel_size=0.01, min_new_points=1,
-                                        densify={"stats_from": 0, "grow_from": 0, "interval": 10, "grad_threshold": 1e-4, "min_opacity": 0.3}))  # fmt: skip
+    densify = {"stats_from": 0, "grow_from": 0, "interval": 10, "grad_threshold": 1e-4, "min_opacity": 0.3}
+    model = build_model(model_node("segs", k=4, feature_dim=8, hidden=8, voxel_size=0.01, min_new_points=1, densify=densify))
     model.to(device=device, dtype=torch.float64)
     added = model.add_points(_points(40, device), torch.rand(40, 3, dtype=torch.float64, device=device),
                              torch.arange(40, device=device) % 3, None)  # fmt: skip
@@ -74,8 +76,9 @@ def test_segs_anchors_grow_and_prune_in_float64(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_plain_gaussians_clone_split_prune_in_float64(device):
     torch.manual_seed(0)
-    model = build_model(load_model_node("plain_3dgs", sh_degree=1, densify={"from_step": 0, "interval": 10, "grad_threshold": 1e-3,
-                                                                          "percent_dense": 0.05, "min_opacity": 0.05, "opacity_reset_interval": 0}))  # fmt: skip
+    densify = {"from_step": 0, "interval": 10, "grad_threshold": 1e-3, "percent_dense": 0.05, "min_opacity": 0.05,
+               "opacity_reset_interval": 0}  # fmt: skip
+    model = build_model(model_node("plain_3dgs", sh_degree=1, densify=densify))
     model.to(device=device, dtype=torch.float64)
     model.add_points(_points(30, device), torch.rand(30, 3, dtype=torch.float64, device=device), torch.arange(30, device=device), None)
     opt = make_adam(model.param_groups())

@@ -5,13 +5,15 @@ import math
 
 import torch
 
+from segs.config import model_node
+from segs.modules.config import build_model
 from segs.modules.optim import make_adam
-from segs.modules.config import build_model, load_model_node
 
 
 def _model():
     torch.manual_seed(0)
-    m = build_model(load_model_node("plain_3dgs", sh_degree=1, densify={"grad_threshold": 1e-3, "percent_dense": 0.01, "min_opacity": 0.05}))
+    densify = {"grad_threshold": 1e-3, "percent_dense": 0.01, "min_opacity": 0.05}
+    m = build_model(model_node("plain_3dgs", sh_degree=1, densify=densify))
     m.scene_extent = 1.0
     xyz = torch.tensor([[0.0, 0, 2], [1.0, 0, 2], [0, 1.0, 2], [1.0, 1.0, 2]])
     m.add_points(xyz, torch.rand(4, 3), torch.tensor([0, 0, 1, 1]), None)

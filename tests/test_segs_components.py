@@ -4,10 +4,11 @@ import math
 import pytest
 import torch
 
+from segs.config import model_node
 from segs.data.frame import Camera
 from segs.modules.afme import AppearanceEncoder, canonical_pose
 from segs.modules.anchors import AnchorField
-from segs.modules.config import build_model, load_model_node
+from segs.modules.config import build_model
 from segs.modules.densification import AnchorGrowth
 from segs.modules.fpr import fpr_loss, highpass_mask, lowpass_mask
 from segs.modules.optim import make_adam
@@ -75,7 +76,10 @@ def test_ae_uses_nearest_training_view_for_unseen_frames():
     enc = AppearanceEncoder("ae", dim=2)
     with torch.no_grad():
         enc.table.weight[:2] = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
-    pose = lambda x: torch.tensor([[1, 0, 0, -x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])  # centre at (x,0,0)
+
+    def pose(x):  # centre at (x,0,0)
+        return torch.tensor([[1, 0, 0, -x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
     enc.register_view(7, View(pose(0.0), None).center)
     enc.register_view(9, View(pose(1.0), None).center)
     assert torch.equal(enc(pose(0.9), None), torch.tensor([0.0, 1.0]))
@@ -205,7 +209,7 @@ def test_fused_decoders_equal_the_three_mlps():
 
 
 def test_segs_model_sepm_batches_and_loop_correction():
-    model = build_model(load_model_node("segs", k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3))
+    model = build_model(model_node("segs", k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3))
     pts = torch.tensor([[0.0, 0, 2], [0.01, 0, 2], [1.0, 0, 2]])
     assert model.add_points(pts, torch.rand(3, 3), torch.tensor([0, 0, 0]), None) == 2  # two voxels
     assert model.add_points(pts[:1] + 1.0, torch.rand(1, 3), torch.tensor([1]), None) == 0  # waits for 3 points

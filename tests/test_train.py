@@ -32,9 +32,9 @@ def test_short_training_lowers_loss_and_writes_every_output(tiny_cfg, tmp_path):
 
 
 def test_loss_decreases(tiny_cfg):
-    from segs.train import build
     from torch.utils.data import DataLoader
-    from segs.train import StepDataset
+
+    from segs.train import StepDataset, build
 
     cfg = tiny_cfg("trainer.max_steps=80", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")
     torch.manual_seed(0)
@@ -46,8 +46,9 @@ def test_loss_decreases(tiny_cfg):
 
 
 def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_path):
-    from segs.train import StepDataset, build
     from torch.utils.data import DataLoader
+
+    from segs.train import StepDataset, build
 
     first = tiny_cfg("trainer.max_steps=30", "callbacks.periodic_checkpoint.every_n_steps=20", "eval.enabled=false", out=tmp_path / "a")
     _, _, module, _, trainer = build(first)

@@ -39,6 +39,14 @@ def compose(overrides: list[str] | None = None, config_name: str = "train", outp
     return cfg
 
 
+def model_node(name: str = "segs", total_steps: int = 30000, **overrides) -> DictConfig:
+    """conf/model/<name>.yaml with total_steps and nested overrides merged, resolved (tests,
+    notebooks): segs.modules.config.build_model(model_node("segs", k=4)) is that model."""
+    root = OmegaConf.create({"trainer": {"max_steps": total_steps}, "model": OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")})
+    model = OmegaConf.merge(root.model, overrides)
+    return OmegaConf.create(OmegaConf.to_container(OmegaConf.merge(root, {"model": model}).model, resolve=True))
+
+
 ALIGNMENTS = ("se3", "sim3", "none")
 
 

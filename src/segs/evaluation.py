@@ -20,8 +20,8 @@ import torch
 from tqdm import tqdm
 
 from segs.callbacks.memory import peak_rss_mb
-from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.modules.contract import GaussianMapper
+from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.trajectory import ate, estimated_c2w, write_tum
 
 log = logging.getLogger(__name__)
@@ -56,8 +56,9 @@ def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
     cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
 
 
-def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int, out: Path,
-                      progress: bool = True, active_threshold: float = 0.005, watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
+def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int,
+                      out: Path, progress: bool = True, active_threshold: float = 0.005,
+                      watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
     """Render every test frame at its estimated pose; returns the mean metrics and writes renders.
 
     watch: called with "at test view N" before each view (the memory guard's check)."""

@@ -13,10 +13,10 @@ import time
 from pathlib import Path
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 import lightning as L
 import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 from torch.utils.data import DataLoader, Dataset
@@ -163,7 +163,8 @@ def _print_summary(out: Path, m: dict) -> None:
         + (f"  {m['lossless_views']} of them also lossless: PSNR {m['psnr_lossless']:.2f} dB against the lossless frames "
            f"({m['psnr_jpeg_on_lossless_views']:.2f} dB against the JPEGs, which score {m['psnr_jpeg_vs_lossless']:.2f} dB)\n"
            if m.get("lossless_views") else "")
-        + f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm over {m['frames_tracked']}/{m['frames']} tracked frames\n"
+        + f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm "
+        f"over {m['frames_tracked']}/{m['frames']} tracked frames\n"
         f"  {m['iterations']} iterations in {m['mapping_time_s']:.1f} s, {m['gaussians']} Gaussians, "
         f"{m['anchors']} anchors, {m['model_mb']:.2f} MB\n"
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")

@@ -173,16 +173,6 @@ def raster_config(node) -> RasterConfig:
     return build(RasterConfig, _plain(node), "raster")
 
 
-def load_model_node(name: str = "segs", total_steps: int = 30000, **overrides) -> DictConfig:
-    """conf/model/<name>.yaml with `total_steps` and nested overrides merged (tests, notebooks)."""
-    from segs.config import CONF_DIR
-
-    root = OmegaConf.create({"trainer": {"max_steps": total_steps}, "model": OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")})
-    OmegaConf.set_struct(root, False)
-    model = OmegaConf.merge(root.model, overrides)
-    return OmegaConf.merge(root, {"model": model}).model
-
-
 def _check_common(cfg: SegsConfig | PlainConfig) -> None:
     _check("model.reference_steps", cfg.reference_steps > 0, cfg.reference_steps, "> 0")
     _check("model.total_steps", cfg.total_steps > 0, cfg.total_steps, "> 0")

@@ -19,8 +19,8 @@ from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.contract import MapCounts, TrainingView
 from segs.modules.metrics import psnr
 from segs.modules.optim import make_adam, set_learning_rates
-from segs.modules.training_views import TrainingViews
 from segs.modules.scene_model import SceneModel, View
+from segs.modules.training_views import TrainingViews
 from segs.raster import rasterize
 
 log = logging.getLogger(__name__)

@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 
 from segs.modules import losses
-from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
 from segs.modules.config import PlainConfig
+from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
 from segs.modules.geometry import apply_similarity, knn_mean_sq_dist, quat_multiply, rotmat_to_quat, split_similarity
 from segs.modules.optim import LrSchedule
 from segs.modules.rows import FLOAT, INDEX, PrimitiveRows

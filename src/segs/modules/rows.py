@@ -61,7 +61,8 @@ class PrimitiveRows(nn.Module):
         at 0. Rows are cast to the stored tensors' dtype and device; new Adam moments are zero."""
         missing, unknown = set(self.param_shapes) - set(rows), set(rows) - set(self.param_shapes) - set(self.buffer_layout)
         if missing or unknown:
-            raise ValueError(f"add needs every parameter of {sorted(self.param_shapes)}; missing {sorted(missing)}, unknown {sorted(unknown)}")
+            raise ValueError(f"add needs every parameter of {sorted(self.param_shapes)}; "
+                             f"missing {sorted(missing)}, unknown {sorted(unknown)}")
         lengths = {v.shape[0] for v in rows.values()}
         if len(lengths) != 1:
             raise ValueError(f"rows of different lengths: { {k: tuple(v.shape) for k, v in rows.items()} }")

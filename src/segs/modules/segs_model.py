@@ -12,16 +12,17 @@ from pathlib import Path
 import torch
 
 from segs.errors import ConfigError
-from segs.modules.config import SegsConfig
 from segs.modules import losses
 from segs.modules.afme import AppearanceEncoder
 from segs.modules.anchors import AnchorField
+from segs.modules.config import SegsConfig
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
 from segs.modules.fpr import fpr_loss
 from segs.modules.geometry import apply_similarity, split_similarity
 from segs.modules.optim import LrSchedule
 from segs.modules.scene_model import Decoded, SceneModel, View
 from segs.modules.sepm import initial_log_scales, voxelize
+
 
 class SegsModel(SceneModel):
     """SEGS-SLAM's photorealistic map (see the module docstring for the parts)."""
