@@ -51,10 +51,6 @@ class PrimitiveRows(nn.Module):
         """Optimizer groups [{"name", "params": [one tensor], "lr"}] in layout order."""
         return [{"name": self.group_name(k), "params": [p], "lr": lrs[k]} for k, p in self.parameters_by_name().items()]
 
-    def _like(self) -> torch.Tensor:
-        """The first parameter: new rows take its dtype and device."""
-        return self._parameters[next(iter(self.param_shapes))]
-
     @torch.no_grad()
     def add(self, rows: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None) -> int:
         """Append M rows: every parameter must be given (name -> [M, ...]); a buffer not given starts
