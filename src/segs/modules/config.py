@@ -163,9 +163,9 @@ def build_model(node):
 
 def mapping_config(node) -> MappingConfig:
     cfg = build(MappingConfig, _plain(node), "mapping")
-    _check("mapping.view_budget", cfg.view_budget >= 1, cfg.view_budget, "an integer >= 1")
-    _check("mapping.min_scene_extent", cfg.min_scene_extent > 0, cfg.min_scene_extent, "a number > 0 (metres)")
-    _check("mapping.adam_eps", cfg.adam_eps > 0, cfg.adam_eps, "a number > 0")
+    _check("config key mapping.view_budget", cfg.view_budget >= 1, cfg.view_budget, "an integer >= 1")
+    _check("config key mapping.min_scene_extent", cfg.min_scene_extent > 0, cfg.min_scene_extent, "a number > 0 (metres)")
+    _check("config key mapping.adam_eps", cfg.adam_eps > 0, cfg.adam_eps, "a number > 0")
     return cfg
 
 
