@@ -3,6 +3,7 @@ bridge hands poses over once, as float32 copies, and registers a new view's pose
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from segs.callbacks.bridge import SlamBridge
@@ -106,3 +107,36 @@ def test_the_bridge_registers_a_new_views_pose_once_as_a_float32_copy():
     assert set(mapper.calls[1][1]) == {0}  # the new view's pose came with the view, not a second time
     frontend_pose[0, 3] = 9.0  # the frontend editing its own array does not move the mapper's view
     assert float(view.w2c[0, 3]) == 0.5
+
+
+def _old_layout(state: dict, renames: dict[str, str]) -> dict:
+    """state under the names checkpoints had before the PrimitiveRows store."""
+    back = {new: old for old, new in renames.items()}
+    out = {}
+    for key, value in state.items():
+        name = key.removeprefix("model.")
+        for new, old in sorted(back.items(), key=lambda kv: -len(kv[0])):
+            if name == new or (new.endswith(".") and old.endswith(".") and name.startswith(new)):
+                name = old + name[len(new):]
+                break
+        out["model." + name] = value
+    return out
+
+
+@pytest.mark.parametrize("name", ["segs", "plain_3dgs"])
+def test_checkpoints_of_the_old_row_layout_load(name):
+    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15})
+    raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
+    extra = {"min_new_points": 1} if name == "segs" else {}
+    make = lambda: GaussianMapperModule(build_model(model_node(name, **extra)), mapping, raster, seed=0)  # noqa: E731
+    src = make()
+    torch.manual_seed(0)
+    src.add_points(torch.rand(30, 3), torch.rand(30, 3), torch.arange(30) % 4)
+    new = src.state_dict()
+    old = _old_layout(new, src.model.LEGACY_STATE_KEYS)
+    assert set(old) != set(new) and any(k.endswith("kf_tags") for k in old)
+    checkpoint = {"state_dict": old}
+    dst = make()
+    dst.on_load_checkpoint(checkpoint)
+    dst.load_state_dict(checkpoint["state_dict"])  # strict: every key found under its new name
+    assert all(torch.equal(v, dst.state_dict()[k]) for k, v in new.items() if torch.is_tensor(v))

@@ -19,7 +19,7 @@ from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.contract import MapCounts, TrainingView
 from segs.modules.metrics import psnr
 from segs.modules.optim import make_adam, set_learning_rates
-from segs.modules.scene_model import SceneModel, View
+from segs.modules.scene_model import SceneModel, View, upgrade_state_keys
 from segs.modules.training_views import TrainingViews
 from segs.raster import rasterize
 
@@ -168,6 +168,8 @@ class GaussianMapperModule(L.LightningModule):
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # checkpoints of the layout before the PrimitiveRows store load under the new names
+        checkpoint["state_dict"] = upgrade_state_keys(checkpoint["state_dict"], self.model.LEGACY_STATE_KEYS, "model.")
         sd = {k.removeprefix("model."): v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
         self.model.resize_for_state(sd)
         extra = checkpoint.get("segs", {})

@@ -33,6 +33,9 @@ class PlainGaussians(SceneModel):
     buffers kf_tag (creating keyframe) and the statistics grad_accum, grad_count, max_radii.
     """
 
+    LEGACY_STATE_KEYS = {"gs.params.": "gs.", "kf_tags": "gs.kf_tag", "grad_accum": "gs.grad_accum",
+                         "grad_count": "gs.grad_count", "max_radii": "gs.max_radii"}  # fmt: skip
+
     def __init__(self, cfg: PlainConfig):
         super().__init__()
         self.sh_degree, self.sh_increase_every = cfg.sh_degree, cfg.sh_increase_every

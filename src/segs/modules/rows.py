@@ -48,8 +48,9 @@ class PrimitiveRows(nn.Module):
         return f"{self.prefix}{name}"
 
     def groups(self, lrs: dict[str, float]) -> list[dict]:
-        """Optimizer groups [{"name", "params": [one tensor], "lr"}] in layout order."""
-        return [{"name": self.group_name(k), "params": [p], "lr": lrs[k]} for k, p in self.parameters_by_name().items()]
+        """Optimizer groups [{"name", "params": [one tensor], "lr"}] in name order (the order
+        checkpoints of every version hold their Adam moments in)."""
+        return [{"name": self.group_name(k), "params": [p], "lr": lrs[k]} for k, p in sorted(self.parameters_by_name().items())]
 
     @torch.no_grad()
     def add(self, rows: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None) -> int:

@@ -27,6 +27,9 @@ from segs.modules.sepm import initial_log_scales, voxelize
 class SegsModel(SceneModel):
     """SEGS-SLAM's photorealistic map (see the module docstring for the parts)."""
 
+    LEGACY_STATE_KEYS = {"field.params.params.": "field.rows.", "field.xyz": "field.rows.xyz", "densifier.": "field.rows.",
+                         "kf_tags": "field.rows.kf_tag"}  # fmt: skip
+
     def __init__(self, cfg: SegsConfig):
         super().__init__()
         self.fpr, self.loss_w, self.growth, self.lr = cfg.fpr, cfg.loss, cfg.densify, cfg.lr
