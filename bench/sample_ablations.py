@@ -60,7 +60,7 @@ def _cell(values: list[float], fmt: str) -> str:
     if any(v is None for v in values):
         return "n/a"
     a = np.asarray(values, float)
-    return f"{a.mean():{fmt}} ± {a.std():{fmt}}" if len(a) > 1 else f"{a[0]:{fmt}}"
+    return f"{a.mean():{fmt}} ± {a.std():{fmt.lstrip('+')}}" if len(a) > 1 else f"{a[0]:{fmt}}"
 
 
 def table(results: dict[str, list[dict]], experiment: str, steps: int, seeds: list[int], extra: list[str]) -> str:
@@ -79,11 +79,13 @@ def table(results: dict[str, list[dict]], experiment: str, steps: int, seeds: li
     ]
     lossless = all(r.get("lossless_views") for r in runs)
     tracked = experiment != "sample"
-    head = ["variant", "test PSNR", "test SSIM"] + (["PSNR vs lossless (same views vs JPEG)"] if lossless else []) + (
+    full = results["full SEGS"]
+    head = ["variant", "test PSNR", "PSNR - full (same seed)", "test SSIM"] + (["PSNR vs lossless (same views vs JPEG)"] if lossless else []) + (
         ["ATE (cm)", "tracked"] if tracked else []) + ["anchors", "Gaussians", "MB", "mapping time (s)", "paper TUM PSNR"]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, rs in results.items():
-        cells = [name, _cell([r["psnr"] for r in rs], ".2f"), _cell([r["ssim"] for r in rs], ".3f")]
+        paired = [r["psnr"] - f["psnr"] for r, f in zip(rs, full)]  # seeds in the same order
+        cells = [name, _cell([r["psnr"] for r in rs], ".2f"), "-" if rs is full else _cell(paired, "+.2f"), _cell([r["ssim"] for r in rs], ".3f")]
         if lossless:
             cells.append(f"{_cell([r['psnr_lossless'] for r in rs], '.2f')} ({_cell([r['psnr_jpeg_on_lossless_views'] for r in rs], '.2f')})")
         if tracked:
