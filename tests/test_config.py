@@ -132,8 +132,22 @@ def test_typed_mapper_configs_reject_bad_keys_in_one_line(override, message, tmp
     assert str(err.value).startswith(message) and "\n" not in str(err.value)
 
 
-def test_plain_3dgs_config_rejects_segs_keys(tmp_path):
-    cfg = compose(["+ablation=plain_3dgs", "+model.fpr.weight=0.01"], output_dir=str(tmp_path))
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_runs_every_ablation(experiment, tmp_path):
+    # an experiment's SEGS settings (fpr, densify.until, appearance) do not apply to plain 3D-GS
+    for ablation in ABLATIONS:
+        cfg = compose([f"+experiment={experiment}", f"+ablation={ablation}"], output_dir=str(tmp_path))
+        validate(cfg)
+        build_model(cfg.model)
+
+
+def test_plain_3dgs_drops_segs_keys_by_name_and_rejects_keys_of_neither_model(tmp_path, caplog):
+    cfg = compose(["+ablation=plain_3dgs", "+model.fpr.weight=0.01", "model.densify.grad_threshold=1e-3"], output_dir=str(tmp_path))
+    with caplog.at_level("WARNING", logger="segs"):
+        validate(cfg)
+    assert "model.fpr are Segs keys and do not apply to PlainGaussians; ignored" in caplog.text
+    assert build_model(cfg.model).densify.grad_threshold == 1e-3  # a key both models have still applies
+    cfg = compose(["+ablation=plain_3dgs", "+model.fpr.bogus=1"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match=r"^model\.fpr: unknown key"):
         validate(cfg)
 

@@ -138,7 +138,9 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
     from segs.modules.config import mapping_config, model_config, raster_config
 
-    for key, build in (("model", model_config), ("mapping", mapping_config), ("raster", raster_config)):
+    if OmegaConf.select(cfg, "model", default=None) is not None:
+        model_config(cfg.model, warn=True)
+    for key, build in (("mapping", mapping_config), ("raster", raster_config)):
         if OmegaConf.select(cfg, key, default=None) is not None:
             build(cfg[key])
     near, far = OmegaConf.select(cfg, "raster.near", default=None), OmegaConf.select(cfg, "raster.far", default=None)

@@ -39,6 +39,50 @@ def build(cls: type, values: Mapping[str, Any] | None, where: str, renamed: Mapp
     return cls(**out)
 
 
+def foreign_keys(values: Mapping[str, Any], cls: type, other: type, ignore: tuple[str, ...] = ("_target_",)) -> list[str]:
+    """Dotted keys of `values` that `cls` does not have but the sibling config `other` does (e.g.
+    SEGS keys an experiment sets, under the plain 3D-GS model of an ablation)."""
+    out = []
+    own, theirs = _fields(cls), _fields(other)
+    for k, v in values.items():
+        if k in ignore:
+            continue
+        if k not in own:
+            if k in theirs and _valid(v, theirs[k]):
+                out.append(k)
+            continue
+        if isinstance(v, Mapping) and dataclasses.is_dataclass(own[k]) and dataclasses.is_dataclass(theirs.get(k)):
+            out += [f"{k}.{sub}" for sub in foreign_keys(v, own[k], theirs[k])]
+    return out
+
+
+def without(values: Mapping[str, Any], keys: list[str]) -> dict:
+    """A copy of values without the dotted keys."""
+    out = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in values.items()}
+    for key in keys:
+        *parents, last = key.split(".")
+        node = out
+        for p in parents:
+            node[p] = dict(node[p])
+            node = node[p]
+        node.pop(last, None)
+    return out
+
+
+def _valid(value, hint) -> bool:
+    """Every key of a (nested) group value is a field of the dataclass hint."""
+    if not (isinstance(value, Mapping) and dataclasses.is_dataclass(hint)):
+        return True
+    fields = _fields(hint)
+    return all(k in fields and _valid(v, fields[k]) for k, v in value.items())
+
+
+def _fields(cls: type) -> dict[str, Any]:
+    """field name -> its type (a dataclass for nested groups)."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
 def _key(where: str, name: str) -> str:
     return f"{where}.{name}" if where else name
 

@@ -9,6 +9,7 @@ the key) and then range-checked here. segs.config.validate builds them before an
 from __future__ import annotations
 
 import importlib
+import logging
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -18,7 +19,9 @@ from segs.errors import ConfigError
 from segs.modules.afme import KINDS as APPEARANCE_KINDS
 from segs.modules.densification import AdaptiveDensity, AnchorGrowth
 from segs.modules.fpr import MODES as FPR_MODES
-from segs.schema import build
+from segs.schema import build, foreign_keys, without
+
+log = logging.getLogger("segs")
 
 
 @dataclass
@@ -142,13 +145,24 @@ def _plain(node: Mapping[str, Any] | DictConfig | None) -> dict:
     return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else dict(node or {})
 
 
-def model_config(node) -> SegsConfig | PlainConfig:
-    """The typed, range-checked config of the `model` node (chosen by its _target_)."""
+def model_config(node, warn: bool = False) -> SegsConfig | PlainConfig:
+    """The typed, range-checked config of the `model` node (chosen by its _target_).
+
+    Keys of the other model (an experiment's SEGS settings under `+ablation=plain_3dgs`) do not
+    apply and are dropped (warn: logged, naming them); keys of neither model are errors.
+    """
     node = _plain(node)
     target = node.get("_target_")
     if target not in MODELS:
         raise ConfigError(f"model._target_={target!r}: expected one of {', '.join(MODELS)}")
     cls = MODELS[target]
+    other = PlainConfig if cls is SegsConfig else SegsConfig
+    foreign = foreign_keys(node, cls, other)
+    if foreign:
+        node = without(node, foreign)
+        if warn:
+            log.warning("model: %s are %s keys and do not apply to %s; ignored", ", ".join(f"model.{k}" for k in foreign),
+                        other.__name__.removesuffix("Config"), target.rpartition(".")[2])  # fmt: skip
     cfg = build(cls, node, "model", renamed=RENAMED.get(cls))
     (_check_segs if cls is SegsConfig else _check_plain)(cfg)
     return cfg
