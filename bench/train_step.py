@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from segs.callbacks.bridge import SlamBridge
 from segs.config import compose, instantiate, make_sequence
-from segs.modules.mapping import MappingModule
+from segs.modules.config import build_model, mapping_config, raster_config
+from segs.modules.gaussian_mapper import GaussianMapperModule
 from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.scene_model import View
 from segs.raster import rasterize
@@ -35,7 +35,7 @@ def build(model: str, steps: int, backend: str, device: str = "cpu"):
                   + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []), output_dir="/tmp/segs_bench")  # fmt: skip
     seq = make_sequence(cfg.data)
     frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
-    module = MappingModule(instantiate(cfg.model), raster=OmegaConf.to_container(cfg.raster), **cfg.mapping)
+    module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
     module.to(device)
     bridge = SlamBridge(seq, frontend, progress=False)
     for _ in range(len(seq)):
@@ -49,18 +49,18 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def iteration(module: MappingModule, opt, step: int, timed: bool) -> dict:
+def iteration(module: GaussianMapperModule, opt, step: int, timed: bool) -> dict:
     t = {}
     dev = str(module.device)
     clock = lambda: (_sync(dev), time.perf_counter())[1]  # noqa: E731
-    kf = module.store.sample()
+    kf = module.views.sample()
     view = View(kf.w2c.to(dev), kf.camera, kf.kf_id)
     gt = kf.rgb().to(dev)
     t0 = clock()
     dec = module.model.decode(view, step)
     t1 = clock()
     out = rasterize(dec.means, dec.quats, dec.scales, dec.opacities, dec.colors, view.w2c, view.K.to(dev), view.camera.width,
-                    view.camera.height, background=torch.zeros(3, device=dev), backend=module.raster["backend"])  # fmt: skip
+                    view.camera.height, background=torch.zeros(3, device=dev), backend=module.raster.backend)  # fmt: skip
     t2 = clock()
     terms = module.model.loss(out, gt, dec, step)
     t3 = clock()
@@ -113,7 +113,8 @@ def main() -> None:
         print(f"| {m} | {r['gaussians']:.0f} | {r['anchors']} | {cells} | {1 / r['total']:.2f} |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"cpu": cpu, "gpu": gpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}, indent=2))
+    record = {"cpu": cpu, "gpu": gpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}
+    out.write_text(json.dumps(record, indent=2))
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import pytest
 
 from segs.config import CONF_DIR, compose, instantiate, validate
 from segs.errors import ConfigError
+from segs.modules.config import build_model
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 ABLATIONS = sorted(p.stem for p in (CONF_DIR / "ablation").glob("*.yaml"))
@@ -32,7 +33,7 @@ def test_experiment_composes(experiment, tmp_path):
 @pytest.mark.parametrize("ablation", ABLATIONS)
 def test_ablation_composes_and_instantiates_its_model(ablation, tmp_path):
     cfg = compose(["+experiment=sample", f"+ablation={ablation}"], output_dir=str(tmp_path))
-    model = instantiate(cfg.model)
+    model = build_model(cfg.model)
     assert len(list(model.parameters())) > 0
 
 
@@ -71,7 +72,7 @@ def test_out_of_range_values_are_rejected_naming_the_key(key, value, tmp_path):
 def test_model_rejects_out_of_range_values(override, needle, tmp_path):
     cfg = compose([override], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
-        instantiate(cfg.model)
+        build_model(cfg.model)
 
 
 def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -112,3 +113,50 @@ def test_more_out_of_range_values_are_rejected_naming_the_key(key, value, tmp_pa
     cfg = compose([f"{key}={value}"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         validate(cfg)
+
+
+@pytest.mark.parametrize("override,message", [
+    ("+model.fpr.until_stp=100", "model.fpr.until_stp: unknown key"),
+    ("+model.densify.bogus=1", "model.densify.bogus: unknown key"),
+    ("+mapping.view_budgett=3", "mapping.view_budgett: unknown key"),
+    ("model.loss.lambda_hf=0.02", "model.loss.lambda_hf was renamed: use model.fpr.weight"),
+    ("model.k=ten", "model.k='ten': expected an integer"),
+    ("model.fpr.enabled=3", "model.fpr.enabled=3: expected true or false"),
+    ("~model.fpr.weight", "model.fpr.weight: missing key"),
+    ("model.fpr.weight=-1", "model.fpr.weight=-1.0 is out of range"),
+])  # fmt: skip
+def test_typed_mapper_configs_reject_bad_keys_in_one_line(override, message, tmp_path):
+    cfg = compose([override], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError) as err:
+        validate(cfg)
+    assert str(err.value).startswith(message) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_runs_every_ablation(experiment, tmp_path):
+    # an experiment's SEGS settings (fpr, densify.until, appearance) do not apply to plain 3D-GS
+    for ablation in ABLATIONS:
+        cfg = compose([f"+experiment={experiment}", f"+ablation={ablation}"], output_dir=str(tmp_path))
+        validate(cfg)
+        build_model(cfg.model)
+
+
+def test_plain_3dgs_drops_segs_keys_by_name_and_rejects_keys_of_neither_model(tmp_path, caplog):
+    cfg = compose(["+ablation=plain_3dgs", "+model.fpr.weight=0.01", "model.densify.grad_threshold=1e-3"], output_dir=str(tmp_path))
+    with caplog.at_level("WARNING", logger="segs"):
+        validate(cfg)
+    assert "model.fpr are Segs keys and do not apply to PlainGaussians; ignored" in caplog.text
+    assert build_model(cfg.model).densify.grad_threshold == 1e-3  # a key both models have still applies
+    cfg = compose(["+ablation=plain_3dgs", "+model.fpr.bogus=1"], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match=r"^model\.fpr: unknown key"):
+        validate(cfg)
+
+
+@pytest.mark.parametrize("override,needle", [("+model.fpr.until_stp=100", "model.fpr.until_stp"),
+                                             ("model.loss.lambda_hf=0.02", "model.fpr.weight")])  # fmt: skip
+def test_cli_unknown_or_renamed_model_key_exits_2_in_one_line(override, needle, tmp_path):
+    r = _cli(override, f"paths.log_dir={tmp_path}", cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr
+    assert not list(tmp_path.rglob("metrics.json"))

@@ -10,8 +10,7 @@ from hypothesis import strategies as st
 from segs.data import Downscaled, build_sequence
 from segs.data.euroc import read_calibration, read_groundtruth, read_image_index
 from segs.data.files import read_rgb, read_timestamped_paths
-from segs.data.poses import (interpolate_poses, matrix_to_quat, poses_from_tq, quat_to_matrix,
-                             slerp)
+from segs.data.poses import interpolate_poses, matrix_to_quat, poses_from_tq, quat_to_matrix, slerp
 from segs.data.replica import read_traj
 from segs.data.synthetic import SyntheticSequence
 from segs.data.tum import TumSequence, read_tum_trajectory

@@ -5,13 +5,15 @@ import math
 
 import torch
 
+from segs.config import model_node
+from segs.modules.config import build_model
 from segs.modules.optim import make_adam
-from segs.modules.plain_gs import PlainGaussians
 
 
 def _model():
     torch.manual_seed(0)
-    m = PlainGaussians(sh_degree=1, densify={"grad_threshold": 1e-3, "percent_dense": 0.01, "min_opacity": 0.05})
+    densify = {"grad_threshold": 1e-3, "percent_dense": 0.01, "min_opacity": 0.05}
+    m = build_model(model_node("plain_3dgs", sh_degree=1, densify=densify))
     m.scene_extent = 1.0
     xyz = torch.tensor([[0.0, 0, 2], [1.0, 0, 2], [0, 1.0, 2], [1.0, 1.0, 2]])
     m.add_points(xyz, torch.rand(4, 3), torch.tensor([0, 0, 1, 1]), None)
@@ -29,24 +31,25 @@ def test_points_initialise_gaussians_with_knn_scales():
 def test_densify_clones_splits_prunes_and_keeps_moments():
     m = _model()
     opt = make_adam(m.param_groups())
-    loss = sum((p**2).sum() for p in m.gs.params.values())
+    loss = sum((p**2).sum() for p in m.gs.parameters_by_name().values())
     loss.backward()
     opt.step()
-    moments = {k: opt.state[p]["exp_avg"].clone() for k, p in m.gs.params.items()}
+    moments = {k: opt.state[p]["exp_avg"].clone() for k, p in m.gs.parameters_by_name().items()}
     with torch.no_grad():
         m.gs["log_scales"][0] = math.log(0.001)  # small -> clone
         m.gs["log_scales"][1] = math.log(0.5)  # large -> split
         m.gs["opacities"][2] = -10.0  # transparent -> pruned
-    m.grad_accum[:] = torch.tensor([1.0, 1.0, 0.0, 0.0])
-    m.grad_count[:] = 1.0
-    out = m._densify_and_prune(False, opt)
+    m.gs.grad_accum[:] = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    m.gs.grad_count[:] = 1.0
+    out = m.densify.adjust(m.gs, opt, m.scene_extent, m.max_gaussians, prune_big=False)
     assert out == {"cloned": 1, "split": 1, "pruned": 2}  # the split parent and the transparent one
     assert len(m.gs) == 4 - 2 + 1 + 2
-    for k, p in m.gs.params.items():
+    for k, p in m.gs.parameters_by_name().items():
         state = opt.state[p]["exp_avg"]
         assert torch.equal(state[0], moments[k][0]) and torch.equal(state[1], moments[k][3]), k
         assert torch.equal(state[2:], torch.zeros_like(state[2:])), k
-    assert torch.equal(m.kf_tags, torch.tensor([0, 1, 0, 0, 0]))
+    assert torch.equal(m.gs.kf_tag, torch.tensor([0, 1, 0, 0, 0]))
+    assert (m.gs.grad_accum == 0).all() and m.gs.max_radii.shape == (5,)  # statistics restart, rows aligned
 
 
 def test_loop_correction_moves_only_the_tagged_gaussians():

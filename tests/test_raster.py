@@ -11,8 +11,7 @@ import pytest
 import torch
 
 import segs.raster as raster
-from segs.raster import BackendUnavailableError, available_backends, rasterize
-from segs.raster import _backends, _build
+from segs.raster import BackendUnavailableError, _backends, _build, available_backends, rasterize
 from segs.raster.scenes import Scene, random_scene
 
 needs_cpu = pytest.mark.skipif("cpu" not in available_backends(), reason="C++ backend unavailable")

@@ -4,8 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from segs.raster import available_backends, rasterize
-from segs.raster import _cpu_backend, _projection, _torch_backend
+from segs.raster import _cpu_backend, _projection, _torch_backend, available_backends, rasterize
 from segs.raster.scenes import random_scene
 
 needs_cpu = pytest.mark.skipif("cpu" not in available_backends(), reason="C++ backend unavailable")

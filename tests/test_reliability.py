@@ -44,8 +44,8 @@ def test_signal_stops_at_a_step_boundary_and_the_run_resumes(tmp_path, sig, code
     step = torch.load(ckpt, weights_only=False)["global_step"]
     assert 10 <= step < 400
 
-    resumed = subprocess.run([sys.executable, "-m", "segs.train", *base, f"ckpt_path={ckpt}", "trainer.max_steps=60"]
-                             if step < 60 else [sys.executable, "-m", "segs.train", *base, f"ckpt_path={ckpt}", f"trainer.max_steps={step + 20}"],
+    steps = 60 if step < 60 else step + 20
+    resumed = subprocess.run([sys.executable, "-m", "segs.train", *base, f"ckpt_path={ckpt}", f"trainer.max_steps={steps}"],
                              capture_output=True, text=True, timeout=300)  # fmt: skip
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     metrics = json.loads((out / "metrics.json").read_text())
@@ -82,8 +82,8 @@ def test_long_run_stays_under_the_memory_limit_and_the_anchor_cap(tiny_cfg, tmp_
     from segs.callbacks.memory import rss_mb
 
     limit = rss_mb() + 600
-    m = run(tiny_cfg("data.n_frames=150", "trainer.max_steps=60", "eval.holdout_every=0", "model.max_anchors=1500", f"limits.max_rss_mb={limit:.0f}",
-                     "callbacks.memory_guard.every_n_steps=5", out=tmp_path / "long"))  # fmt: skip
+    m = run(tiny_cfg("data.n_frames=150", "trainer.max_steps=60", "eval.holdout_every=0", "model.max_anchors=1500",
+                     f"limits.max_rss_mb={limit:.0f}", "callbacks.memory_guard.every_n_steps=5", out=tmp_path / "long"))  # fmt: skip
     assert m["anchors"] <= 1500 and m["frames"] == 150
 
 
@@ -143,7 +143,8 @@ def test_a_folder_another_run_is_writing_into_is_refused(tmp_path):
     finally:
         release(out)
     assert second.returncode == 2 and _lines(second.stderr) == [
-        f"error: hydra.run.dir={out}: process {os.getpid()} on {socket.gethostname()} is running in this folder; give this run another folder"]
+        f"error: hydra.run.dir={out}: process {os.getpid()} on {socket.gethostname()} is running in this folder; "
+        "give this run another folder"]
     assert [p.name for p in out.iterdir()] == [".segs.lock"]  # nothing of the second run written
 
 

@@ -113,3 +113,20 @@ def test_resumed_in_its_own_folder_the_old_result_is_kept_aside(uninterrupted, t
     release(folder)
     assert not (folder / "metrics.json").exists()
     assert json.loads((folder / "metrics.previous.json").read_text())["psnr"] == whole["psnr"]
+
+
+def test_plain_3dgs_resumes_to_the_same_gaussians(tmp_path):
+    # densification (clone / split / prune: rows, moments and statistics of the Gaussians' store)
+    # runs at step 100, after the resume from step 40
+    from conftest import TINY
+    from segs.config import compose
+
+    extra = ["+ablation=plain_3dgs", "trainer.max_steps=120", "model.densify.until_step=30000", "eval.save_renders=0"]
+    make = lambda *o, out: compose(TINY + STEPS[1:] + extra + list(o), output_dir=str(out))  # noqa: E731
+    whole = run(make(out=tmp_path / "whole"))
+    out = tmp_path / "resumed"
+    with pytest.raises(SystemExit):
+        run(make("+callbacks.signal_at._target_=test_resume.SignalAt", "+callbacks.signal_at.step=40", out=out))
+    resumed = run(make(f"ckpt_path={out / 'checkpoints' / 'last.ckpt'}", out=out))
+    assert resumed["gaussians"] == whole["gaussians"] and resumed["iterations"] == 120
+    assert resumed["psnr"] == pytest.approx(whole["psnr"], abs=0.05)

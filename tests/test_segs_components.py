@@ -4,10 +4,12 @@ import math
 import pytest
 import torch
 
+from segs.config import model_node
 from segs.data.frame import Camera
 from segs.modules.afme import AppearanceEncoder, canonical_pose
 from segs.modules.anchors import AnchorField
-from segs.modules.densification import AnchorDensifier
+from segs.modules.config import build_model
+from segs.modules.densification import AnchorGrowth
 from segs.modules.fpr import fpr_loss, highpass_mask, lowpass_mask
 from segs.modules.optim import make_adam
 from segs.modules.scene_model import View
@@ -74,7 +76,10 @@ def test_ae_uses_nearest_training_view_for_unseen_frames():
     enc = AppearanceEncoder("ae", dim=2)
     with torch.no_grad():
         enc.table.weight[:2] = torch.tensor([[1.0, 0.0], [0.0, 1.0]])
-    pose = lambda x: torch.tensor([[1, 0, 0, -x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])  # centre at (x,0,0)
+
+    def pose(x):  # centre at (x,0,0)
+        return torch.tensor([[1, 0, 0, -x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
     enc.register_view(7, View(pose(0.0), None).center)
     enc.register_view(9, View(pose(1.0), None).center)
     assert torch.equal(enc(pose(0.9), None), torch.tensor([0.0, 1.0]))
@@ -99,10 +104,10 @@ def _camera():
 
 def _field(n=20, k=4, seed=0):
     torch.manual_seed(seed)
-    field = AnchorField(k=k, feature_dim=8, hidden=8, appearance_dim=0)
+    field = AnchorField(k=k, feature_dim=8, hidden=8, appearance_dim=0, use_distance=False, frustum_margin=0.15)
     xyz = torch.rand(n, 3) * 2 - 1
     xyz[:, 2] += 4.0
-    field.add(xyz, torch.randn(n, 8), torch.full((n, 6), math.log(0.05)), None)
+    field.add(xyz, torch.randn(n, 8), torch.full((n, 6), math.log(0.05)), torch.arange(n), None)
     return field
 
 
@@ -120,14 +125,14 @@ def test_decoded_count_is_k_times_visible_minus_dropped():
 
 def _densifier_setup():
     field = _field(n=6, k=2)
-    opt = make_adam(field.params.groups({"features": 0.01, "offsets": 0.01, "log_scales": 0.01}))
-    dens = AnchorDensifier(k=2, voxel_size=0.01, grad_threshold=1e-3, min_opacity=0.005, success_threshold=0.8)
-    dens.extend(len(field))
-    return field, opt, dens
+    opt = make_adam(field.rows.groups({"features": 0.01, "offsets": 0.01, "log_scales": 0.01}))
+    growth = AnchorGrowth(stats_from=0, grow_from=0, until=100, interval=10, scale_interval=False, grad_threshold=1e-3,
+                          update_depth=3, init_factor=16, hierarchy_factor=4, min_opacity=0.005, success_threshold=0.8)  # fmt: skip
+    return field, opt, growth
 
 
 def _step_adam(field, opt):
-    loss = sum((p**2).sum() for p in field.params.params.values())
+    loss = sum((p**2).sum() for p in field.rows.parameters_by_name().values())
     loss.backward()
     opt.step()
     opt.zero_grad()
@@ -136,26 +141,26 @@ def _step_adam(field, opt):
 def test_growth_adds_anchors_only_in_empty_cells_and_keeps_moments():
     field, opt, dens = _densifier_setup()
     _step_adam(field, opt)
-    feat = field.params["features"]
+    feat = field.rows["features"]
     before = opt.state[feat]["exp_avg"].clone()
     with torch.no_grad():  # Gaussian 0 of anchor 0 sits 5 cm away; Gaussian 1 sits on anchor 1
-        scale = torch.exp(field.params["log_scales"][:, :3])
-        field.params["offsets"][0, 0] = torch.tensor([0.05, 0.0, 0.0]) / scale[0]
-        field.params["offsets"][1, 1] = 0.0
-    dens.grad_accum[:] = 0.0
-    dens.grad_visits[:] = 100.0
-    dens.grad_accum[0, 0] = 1.0  # strong gradient
-    dens.grad_accum[1, 1] = 1.0  # strong, but its cell already holds anchor 1
-    tags = torch.arange(6)
+        scale = torch.exp(field.rows["log_scales"][:, :3])
+        field.rows["offsets"][0, 0] = torch.tensor([0.05, 0.0, 0.0]) / scale[0]
+        field.rows["offsets"][1, 1] = 0.0
+    field.rows.grad_accum[:] = 0.0
+    field.rows.grad_visits[:] = 100.0
+    field.rows.grad_accum[0, 0] = 1.0  # strong gradient
+    field.rows.grad_accum[1, 1] = 1.0  # strong, but its cell already holds anchor 1
     gen = torch.Generator().manual_seed(0)
-    out, tags = dens.adjust(field, tags, interval=10, optimizer=opt, generator=gen)
+    out = dens.adjust(field, opt, interval=10, voxel_size=0.01, max_anchors=200_000, generator=gen)
+    tags = field.rows.kf_tag
     assert out["grown"] >= 1 and len(field) == 6 + out["grown"]
     new = field.xyz[6:]
     target = field.xyz[0] + torch.tensor([0.05, 0.0, 0.0])
     assert (new - target).norm(dim=-1).min() < 0.16 * 1.8  # in the coarse cell around the Gaussian
     assert (new[:, None] - field.xyz[None, :6]).norm(dim=-1).min() > 1e-6  # never on an existing anchor
     assert torch.equal(tags[6:], torch.zeros(out["grown"], dtype=torch.long))  # inherits anchor 0's tag
-    feat = field.params["features"]
+    feat = field.rows["features"]
     assert torch.equal(opt.state[feat]["exp_avg"][:6], before)
     assert torch.equal(opt.state[feat]["exp_avg"][6:], torch.zeros_like(opt.state[feat]["exp_avg"][6:]))
     assert feat in opt.param_groups[0]["params"]
@@ -164,30 +169,31 @@ def test_growth_adds_anchors_only_in_empty_cells_and_keeps_moments():
 def test_pruning_removes_low_opacity_anchors_and_keeps_moments():
     field, opt, dens = _densifier_setup()
     _step_adam(field, opt)
-    offsets = field.params["offsets"]
+    offsets = field.rows["offsets"]
     kept_state = opt.state[offsets]["exp_avg"][[0, 1, 3, 4, 5]].clone()
-    dens.anchor_visits[:] = 50.0
-    dens.opacity_accum[:] = 10.0
-    dens.opacity_accum[2] = 0.01  # < 0.005 * 50
+    field.rows.anchor_visits[:] = 50.0
+    field.rows.opacity_accum[:] = 10.0
+    field.rows.opacity_accum[2] = 0.01  # < 0.005 * 50
     xyz = field.xyz.clone()
-    out, tags = dens.adjust(field, torch.arange(6), interval=10, optimizer=opt)
+    out = dens.adjust(field, opt, interval=10, voxel_size=0.01, max_anchors=200_000)
+    tags = field.rows.kf_tag
     assert out["pruned"] == 1 and len(field) == 5
     assert torch.equal(field.xyz, xyz[[0, 1, 3, 4, 5]])
     assert torch.equal(tags, torch.tensor([0, 1, 3, 4, 5]))
-    assert torch.equal(opt.state[field.params["offsets"]]["exp_avg"], kept_state)
-    assert (dens.anchor_visits == 0).all()  # statistics window restarted
+    assert torch.equal(opt.state[field.rows["offsets"]]["exp_avg"], kept_state)
+    assert (field.rows.anchor_visits == 0).all()  # statistics window restarted
 
 
 def test_fused_decoders_equal_the_three_mlps():
     torch.manual_seed(1)
-    field = AnchorField(k=3, feature_dim=8, hidden=8, appearance_dim=4)
+    field = AnchorField(k=3, feature_dim=8, hidden=8, appearance_dim=4, use_distance=False, frustum_margin=0.15)
     xyz = torch.rand(12, 3) - 0.5
     xyz[:, 2] += 3.0
-    field.add(xyz, torch.randn(12, 8), torch.full((12, 6), math.log(0.1)), None)
+    field.add(xyz, torch.randn(12, 8), torch.full((12, 6), math.log(0.1)), torch.zeros(12, dtype=torch.long), None)
     view, emb = View(torch.eye(4), _camera()), torch.randn(4)
     decoded, info = field.decode(view, emb)
     rel = field.xyz[info.visible] - view.center
-    x = torch.cat([field.params["features"][info.visible], rel / rel.norm(dim=-1, keepdim=True)], -1)
+    x = torch.cat([field.rows["features"][info.visible], rel / rel.norm(dim=-1, keepdim=True)], -1)
     opacity = torch.tanh(field.mlp_opacity(x)).reshape(-1)
     color = torch.sigmoid(field.mlp_color(torch.cat([x, emb.expand(len(x), 4)], -1))).reshape(-1, 3)
     cov = field.mlp_cov(x).reshape(-1, 7)
@@ -195,30 +201,28 @@ def test_fused_decoders_equal_the_three_mlps():
     assert torch.allclose(decoded.opacities, opacity[keep], atol=1e-6)
     assert torch.allclose(decoded.colors, color[keep], atol=1e-6)
     assert torch.allclose(decoded.quats, torch.nn.functional.normalize(cov[keep, 3:7], dim=-1), atol=1e-6)
-    scale = torch.exp(field.params["log_scales"][info.visible]).repeat_interleave(3, 0)
+    scale = torch.exp(field.rows["log_scales"][info.visible]).repeat_interleave(3, 0)
     assert torch.allclose(decoded.scales, (scale[:, 3:] * torch.sigmoid(cov[:, :3]))[keep], atol=1e-6)
-    means = field.xyz[info.visible].repeat_interleave(3, 0) + field.params["offsets"][info.visible].reshape(-1, 3) * scale[:, :3]
+    means = field.xyz[info.visible].repeat_interleave(3, 0) + field.rows["offsets"][info.visible].reshape(-1, 3) * scale[:, :3]
     assert torch.allclose(decoded.means, means[keep], atol=1e-6)
     assert torch.equal(info.slots(3), torch.nonzero(keep).squeeze(1) + 0 * info.visible[0])  # all anchors visible here
 
 
 def test_segs_model_sepm_batches_and_loop_correction():
-    from segs.modules.segs_model import SegsModel
-
-    model = SegsModel(k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3)
+    model = build_model(model_node("segs", k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3))
     pts = torch.tensor([[0.0, 0, 2], [0.01, 0, 2], [1.0, 0, 2]])
     assert model.add_points(pts, torch.rand(3, 3), torch.tensor([0, 0, 0]), None) == 2  # two voxels
     assert model.add_points(pts[:1] + 1.0, torch.rand(1, 3), torch.tensor([1]), None) == 0  # waits for 3 points
     added = model.add_points(torch.tensor([[2.0, 0, 2], [3.0, 0, 2]]), torch.rand(2, 3), torch.tensor([1, 1]), None)
     assert added == 3 and len(model.field) == 5
-    assert torch.equal(model.kf_tags, torch.tensor([0, 0, 1, 1, 1]))
+    assert torch.equal(model.field.rows.kf_tag, torch.tensor([0, 0, 1, 1, 1]))
     assert model.add_points(pts, torch.rand(3, 3), torch.tensor([2, 2, 2]), None) == 0  # voxels already held
     T = torch.eye(4)
     T[:3, :3] = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]) * 2.0  # rotation and scale 2
     before = model.field.xyz.clone()
-    scales_before = torch.exp(model.field.params["log_scales"].detach().clone())
+    scales_before = torch.exp(model.field.rows["log_scales"].detach().clone())
     assert model.correct_map({1: T}, None) == 3
     assert torch.equal(model.field.xyz[:2], before[:2])
     assert torch.allclose(model.field.xyz[2:], before[2:] @ T[:3, :3].T)
-    scales = torch.exp(model.field.params["log_scales"].detach())
+    scales = torch.exp(model.field.rows["log_scales"].detach())
     assert torch.allclose(scales[2:], 2 * scales_before[2:]) and torch.equal(scales[:2], scales_before[:2])

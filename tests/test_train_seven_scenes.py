@@ -3,7 +3,6 @@ the shared 7-Scenes sequence; skipped where the data is absent)."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import torch

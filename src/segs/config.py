@@ -39,6 +39,14 @@ def compose(overrides: list[str] | None = None, config_name: str = "train", outp
     return cfg
 
 
+def model_node(name: str = "segs", total_steps: int = 30000, **overrides) -> DictConfig:
+    """conf/model/<name>.yaml with total_steps and nested overrides merged, resolved (tests,
+    notebooks): segs.modules.config.build_model(model_node("segs", k=4)) is that model."""
+    root = OmegaConf.create({"trainer": {"max_steps": total_steps}, "model": OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")})
+    model = OmegaConf.merge(root.model, overrides)
+    return OmegaConf.create(OmegaConf.to_container(OmegaConf.merge(root, {"model": model}).model, resolve=True))
+
+
 ALIGNMENTS = ("se3", "sim3", "none")
 
 
@@ -63,9 +71,6 @@ _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("camera.sensor", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
     ("raster.backend", lambda v: v in ("auto", "torch", "cpu", "cuda"), "one of auto, torch, cpu, cuda"),
     ("raster.near", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
-    ("mapping.view_budget", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
-    ("mapping.min_scene_extent", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
-    ("mapping.adam_eps", lambda v: _number(v) and v > 0, "a number > 0"),
     ("callbacks.slam_bridge.frames_per_step", lambda v: v is None or (_number(v) and v > 0), "null or a number > 0"),
     ("callbacks.slam_bridge.feed_until", lambda v: _number(v) and 0 < v <= 1, "a fraction in (0, 1]"),
     ("callbacks.slam_bridge.min_initial_keyframes", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
@@ -118,10 +123,11 @@ def make_sequence(data_cfg: DictConfig):
 
 
 def validate(cfg: DictConfig) -> None:
-    """Raise ConfigError naming the first bad key; the model checks its own keys when built.
+    """Raise ConfigError naming the first bad key.
 
-    Checks, before anything runs: every number of the config is finite, the keys of _CHECKS,
-    raster.far > raster.near, and that raster.backend=cuda can run here.
+    Checks, before anything runs: every number of the config is finite, the typed mapper configs
+    (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
+    the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
     """
     _check_finite(cfg)
     for key, ok, expected in _CHECKS:
@@ -130,6 +136,13 @@ def validate(cfg: DictConfig) -> None:
             continue
         if not ok(value):
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
+    from segs.modules.config import mapping_config, model_config, raster_config
+
+    if OmegaConf.select(cfg, "model", default=None) is not None:
+        model_config(cfg.model, warn=True)
+    for key, build in (("mapping", mapping_config), ("raster", raster_config)):
+        if OmegaConf.select(cfg, key, default=None) is not None:
+            build(cfg[key])
     near, far = OmegaConf.select(cfg, "raster.near", default=None), OmegaConf.select(cfg, "raster.far", default=None)
     if near is not None and far is not None and not (_number(far) and far > near):
         raise ConfigError(f"config key raster.far={far!r} is out of range: expected a number > raster.near={near!r}")

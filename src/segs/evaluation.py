@@ -3,13 +3,13 @@
 Test views are all tracked frames whose images were not trained on; each is rendered at its
 estimated pose and compared with its image (PSNR, SSIM, LPIPS when weights are configured).
 ATE comes from evo. metrics.json is written last and atomically: a run folder without it is not
-a finished result.
+a finished result. The mapper is used only through segs.modules.contract.GaussianMapper.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
-import contextlib
 import os
 from pathlib import Path
 from typing import Callable
@@ -20,8 +20,8 @@ import torch
 from tqdm import tqdm
 
 from segs.callbacks.memory import peak_rss_mb
+from segs.modules.contract import GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
-from segs.modules.scene_model import View
 from segs.trajectory import ate, estimated_c2w, write_tum
 
 log = logging.getLogger(__name__)
@@ -56,8 +56,9 @@ def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
     cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
 
 
-def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int, out: Path,
-                      progress: bool = True, active_threshold: float = 0.005, watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
+def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: list[int], lpips_weights, save_renders: int,
+                      out: Path, progress: bool = True, active_threshold: float = 0.005,
+                      watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
     """Render every test frame at its estimated pose; returns the mean metrics and writes renders.
 
     watch: called with "at test view N" before each view (the memory guard's check)."""
@@ -72,9 +73,8 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
         frame = sequence[idx]
         gt = torch.from_numpy(np.ascontiguousarray(frame.rgb))
         render = module.render_image(trajectory[idx], frame.camera)["image"]
-        view = View(torch.as_tensor(trajectory[idx], dtype=torch.float32), frame.camera)
         row = {"frame": idx, "psnr": psnr(render, gt), "ssim": ssim(render, gt), "lpips": lpips(render, gt) if lpips else None,
-               "active": module.model.count_active(view, active_threshold)}  # fmt: skip
+               "active": module.count_active(trajectory[idx], frame.camera, active_threshold)}  # fmt: skip
         clean = lossless(idx) if lossless is not None else None
         if clean is not None:  # the same frame without compression (7-Scenes frames 150-199)
             clean = torch.from_numpy(np.ascontiguousarray(clean))
@@ -98,7 +98,7 @@ def render_test_views(module, sequence, trajectory: dict, test: list[int], lpips
     return out
 
 
-def run_summary(module, sequence, bridge, timing: dict) -> dict:
+def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
     """The numbers of a run that need no rendering: time, tracking, keyframes, model size.
 
     timing: {"steps", "fit_s", "wall_s"} summed over every session of the run (resumes included).
@@ -106,7 +106,7 @@ def run_summary(module, sequence, bridge, timing: dict) -> dict:
     frontend = bridge.frontend
     trajectory = frontend.trajectory()
     lost = frontend.lost_frames()
-    counts = module.model.counts()
+    counts = module.counts()
     steps = timing.get("steps", 0)
     dropped = int(getattr(sequence, "dropped", 0) or 0)
     summary = {
@@ -124,12 +124,12 @@ def run_summary(module, sequence, bridge, timing: dict) -> dict:
         "lost_frames": len(lost),
         "lost_ranges": lost_ranges(lost),
         "keyframes": len(frontend.keyframe_frames()),
-        "training_views": len(module.store),
+        "training_views": counts.training_views,
         "held_out_points": bridge.held_out_points,
-        "anchors": int(counts["anchors"]),
-        "gaussians": int(counts["gaussians"]),
-        "params": int(counts["params"]),
-        "model_mb": float(counts["mb"]),
+        "anchors": counts.anchors,
+        "gaussians": counts.gaussians,
+        "params": counts.params,
+        "model_mb": counts.mb,
         "peak_rss_mb": peak_rss_mb(),
     }
     if dropped:
@@ -138,7 +138,7 @@ def run_summary(module, sequence, bridge, timing: dict) -> dict:
     return summary
 
 
-def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict, notes: dict | None = None,
+def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg, out: Path, timing: dict, notes: dict | None = None,
              watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
     """Compute and write every result file of a run; returns the metrics dict (metrics.json, last).
 
@@ -153,9 +153,8 @@ def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict, notes:
     idx, c2w = estimated_c2w(trajectory)
     write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
     ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))
-    if eval_cfg.get("write_ply", True) and len(module.store):
-        kf = module.store[min(module.store.frames)]
-        module.model.export_ply(out / "point_cloud.ply", View(kf.w2c, kf.camera, kf.kf_id))
+    if eval_cfg.get("write_ply", True):
+        module.export_ply(out / "point_cloud.ply")
     summary = run_summary(module, sequence, bridge, timing)
     metrics = {
         **images,
@@ -172,7 +171,7 @@ def evaluate(module, sequence, bridge, eval_cfg, out: Path, timing: dict, notes:
     return metrics
 
 
-def write_not_evaluated(module, sequence, bridge, out: Path, timing: dict, notes: dict | None = None) -> dict:
+def write_not_evaluated(module: GaussianMapper, sequence, bridge, out: Path, timing: dict, notes: dict | None = None) -> dict:
     """metrics.json of a run trained with eval.enabled=false (status "not_evaluated"): the run's
     numbers without any test-view or trajectory metric."""
     out.mkdir(parents=True, exist_ok=True)

@@ -13,12 +13,12 @@ import time
 from pathlib import Path
 
 import hydra
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 import lightning as L
 import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
@@ -27,7 +27,8 @@ from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read
 from segs.config import instantiate, make_sequence, user_errors_exit, validate
 from segs.errors import DataError, TrackingFailed
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
-from segs.modules.mapping import MappingModule
+from segs.modules.config import build_model, mapping_config, raster_config
+from segs.modules.gaussian_mapper import GaussianMapperModule
 
 log = logging.getLogger("segs.train")
 
@@ -57,7 +58,7 @@ def build(cfg: DictConfig, session_start: float | None = None):
     if record is not None:
         check_resume(cfg.ckpt_path, record, identity)
     frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
-    module = MappingModule(instantiate(cfg.model), raster=OmegaConf.to_container(cfg.raster), seed=cfg.seed, **cfg.mapping)
+    module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
     bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(sequence=sequence, frontend=frontend)
     callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
     callbacks.append(RunRecord(identity, session_start))
@@ -162,7 +163,8 @@ def _print_summary(out: Path, m: dict) -> None:
         + (f"  {m['lossless_views']} of them also lossless: PSNR {m['psnr_lossless']:.2f} dB against the lossless frames "
            f"({m['psnr_jpeg_on_lossless_views']:.2f} dB against the JPEGs, which score {m['psnr_jpeg_vs_lossless']:.2f} dB)\n"
            if m.get("lossless_views") else "")
-        + f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm over {m['frames_tracked']}/{m['frames']} tracked frames\n"
+        + f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm "
+        f"over {m['frames_tracked']}/{m['frames']} tracked frames\n"
         f"  {m['iterations']} iterations in {m['mapping_time_s']:.1f} s, {m['gaussians']} Gaussians, "
         f"{m['anchors']} anchors, {m['model_mb']:.2f} MB\n"
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")

@@ -1,8 +1,9 @@
 """The one bridge between the SLAM frontend (segs.slam) and the mapper (segs.modules).
 
 Before each training step the bridge feeds the frames that became available to the frontend,
-polls its MapUpdate and pushes keyframes, refreshed poses, new points and loop corrections into
-the module through the module's bridge interface. Neither side imports the other.
+polls its MapUpdate and pushes training views, refreshed poses, new points and loop corrections
+into the mapper through segs.modules.contract.GaussianMapper, the only part of the mapper it
+uses. Neither side imports the other.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from tqdm import tqdm
 from segs.callbacks.memory import MemoryGuard
 from segs.data.frame import Frame, Sequence
 from segs.errors import TrackingFailed
-from segs.modules.keyframes import Keyframe, to_uint8
+from segs.modules.contract import GaussianMapper, TrainingView, to_uint8
 from segs.slam.base import Frontend, MapUpdate
 
 log = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ class SlamBridge(L.Callback):
         self._watch = None  # memory check called while tracking: where -> None (raises LimitError)
 
     # -- Lightning hooks ------------------------------------------------------------------------
-    def on_train_start(self, trainer, pl_module) -> None:
+    def on_train_start(self, trainer, pl_module: GaussianMapper) -> None:
         guard = next((c for c in trainer.callbacks if isinstance(c, MemoryGuard)), None)
         if guard is not None:  # nothing trained before mapping starts (after fit: final.ckpt exists)
             self._watch = lambda where: guard.check(trainer, where, save=False)
@@ -68,8 +69,7 @@ class SlamBridge(L.Callback):
         # also wait for the first map points: the ORB frontend hands them over once they have
         # survived culling over a few keyframes
         while self.cursor < len(self.sequence) and (
-            len(self.frontend.keyframe_frames()) < self.min_initial_keyframes or len(pl_module.store) == 0
-            or pl_module.model.counts()["gaussians"] == 0
+            len(self.frontend.keyframe_frames()) < self.min_initial_keyframes or self._empty(pl_module.counts())
         ):
             self._feed_one()
             self._push(self.frontend.poll(), pl_module)
@@ -81,15 +81,21 @@ class SlamBridge(L.Callback):
             steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
             self.frames_per_step = (len(self.sequence) - self.cursor) / steps
         name, lost = getattr(self.sequence, "name", "the sequence"), len(self.frontend.lost_frames())
-        if len(pl_module.store) == 0:
+        counts = pl_module.counts()
+        if counts.training_views == 0:
             reason = f"no training keyframe in the {len(self.sequence)} frames of {name} ({lost} frames could not be tracked)"
-        elif pl_module.model.counts()["gaussians"] == 0:  # keyframes, but not one 3D point (tiny or blank images)
-            reason = f"the frontend gave no 3D point in {len(pl_module.store)} keyframes of {name} (image too small or without texture?)"
+        elif counts.gaussians == 0:  # keyframes, but not one 3D point (tiny or blank images)
+            reason = f"the frontend gave no 3D point in {counts.training_views} keyframes of {name} (image too small or without texture?)"
         else:
             return
         raise TrackingFailed(f"data: {reason}; nothing to map", frames=len(self.sequence), lost=lost)
 
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+    @staticmethod
+    def _empty(counts) -> bool:
+        """Nothing to train on yet: no training view or no Gaussian."""
+        return counts.training_views == 0 or counts.gaussians == 0
+
+    def on_train_batch_start(self, trainer, pl_module: GaussianMapper, batch, batch_idx) -> None:
         self.credit += self.frames_per_step
         update = MapUpdate()
         while self.credit >= 1.0 and self.cursor < len(self.sequence):
@@ -140,26 +146,29 @@ class SlamBridge(L.Callback):
     def _frame(self, index: int) -> Frame:
         return self._cache[index] if index in self._cache else self.sequence[index]
 
-    def _push(self, update: MapUpdate, module) -> None:
+    def _push(self, update: MapUpdate, module: GaussianMapper) -> None:
+        """Hand one MapUpdate to the mapper; every pose is converted once (float32 copies) and a
+        new view's pose is registered once, with the view."""
         if update.is_empty():
             return
         kf_frames = self.frontend.keyframe_frames()
+        poses = {int(k): torch.tensor(v, dtype=torch.float32) for k, v in update.poses.items()}
         new = []
         for kf_id in update.new_keyframes:
             idx = kf_frames.get(kf_id)
-            if idx is None or kf_id not in update.poses:
+            if idx is None or kf_id not in poses:
                 continue
             if self.holdout_every and idx % self.holdout_every == 0:
                 self.held_out_keyframes.append(kf_id)
                 continue
-            new.append(self._keyframe(kf_id, self._frame(idx), update.poses[kf_id]))
+            new.append(self._training_view(kf_id, self._frame(idx), poses.pop(kf_id)))
             self.trained_frames[kf_id] = idx
         if new:
             module.add_keyframes(new)
-        if update.poses:
-            module.update_poses({k: torch.as_tensor(v, dtype=torch.float32) for k, v in update.poses.items()})
+        if poses:
+            module.update_poses(poses)
         if update.corrections:
-            module.correct_map({k: torch.as_tensor(v, dtype=torch.float32) for k, v in update.corrections.items()})
+            module.correct_map({int(k): torch.tensor(v, dtype=torch.float32) for k, v in update.corrections.items()})
         keep = self._mappable_points(update.point_kf, kf_frames)
         if keep.any():
             module.add_points(
@@ -179,13 +188,13 @@ class SlamBridge(L.Callback):
         return keep
 
     @staticmethod
-    def _keyframe(kf_id: int, frame: Frame, w2c: np.ndarray) -> Keyframe:
-        return Keyframe(
+    def _training_view(kf_id: int, frame: Frame, w2c: torch.Tensor) -> TrainingView:
+        return TrainingView(
             kf_id=kf_id,
             frame_index=frame.index,
             timestamp=frame.timestamp,
             image=to_uint8(torch.from_numpy(np.ascontiguousarray(frame.rgb))),
-            w2c=torch.as_tensor(w2c, dtype=torch.float32),
+            w2c=w2c,
             camera=frame.camera,
             depth=torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None else None,
         )

@@ -4,23 +4,23 @@ from __future__ import annotations
 import lightning as L
 import torch
 
-from segs.modules.scene_model import View
+from segs.modules.contract import GaussianMapper
 
 
 class ImageLogger(L.Callback):
-    """Every `every_n_steps` logs [render | ground truth] of the first training keyframe."""
+    """Every `every_n_steps` logs [render | ground truth] of the first training view."""
 
     def __init__(self, every_n_steps: int = 500):
         self.every_n_steps = every_n_steps
 
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+    def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
-        if not self.every_n_steps or step % self.every_n_steps or trainer.logger is None or not len(pl_module.store):
+        if not self.every_n_steps or step % self.every_n_steps or trainer.logger is None:
             return
         experiment = getattr(trainer.logger, "experiment", None)
-        if experiment is None or not hasattr(experiment, "add_image"):
+        kf = pl_module.first_view()
+        if kf is None or experiment is None or not hasattr(experiment, "add_image"):
             return
-        kf = pl_module.store[min(pl_module.store.frames)]
         render = pl_module.render_image(kf.w2c, kf.camera, kf.kf_id)["image"]
         pair = torch.cat([render, kf.rgb()], dim=1).clamp(0, 1)
         experiment.add_image("render_vs_gt", pair.permute(2, 0, 1), global_step=step)

@@ -5,8 +5,8 @@ The paper's encoder is a single linear layer on the world-to-camera pose as 7 nu
 rotation; the authors' code does not handle this). At test time the test frame's estimated pose
 goes in; nothing is fitted on test images.
 
-Variants (config `afme.kind`): "linear" (the paper), "mlp" (ours: translation divided by the
-scene extent, Linear-ReLU-Linear), "ae" (the ablation: a learned embedding per training
+Variants (config `model.appearance.kind`): "linear" (the paper), "mlp" (ours: translation
+divided by the scene extent, Linear-ReLU-Linear), "ae" (the ablation: a learned embedding per training
 keyframe, NeRF-W / Scaffold-GS; a test frame uses the embedding of the training keyframe whose
 camera centre is nearest — AE cannot embed unseen views, and this is the most favourable
 choice that uses no test image), "none" (no embedding).
@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from segs.errors import LimitError
 from segs.modules.geometry import rotmat_to_quat
 
 KINDS = ("linear", "mlp", "ae", "none")
@@ -38,7 +39,7 @@ class AppearanceEncoder(nn.Module):
     def __init__(self, kind: str = "linear", dim: int = 32, hidden: int = 32, max_views: int = 4096):
         super().__init__()
         if kind not in KINDS:
-            raise ValueError(f"afme.kind must be one of {KINDS}, got {kind!r}")
+            raise ValueError(f"model.appearance.kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.dim = kind, (0 if kind == "none" else dim)
         self.scene_extent = 1.0
         if kind == "linear":
@@ -58,7 +59,7 @@ class AppearanceEncoder(nn.Module):
             return
         if kf_id not in self.view_rows:
             if len(self.view_rows) >= self.table.num_embeddings:
-                raise RuntimeError(f"AE table full ({self.table.num_embeddings} views): raise afme.max_views")
+                raise LimitError(f"AE table full ({self.table.num_embeddings} training views): raise model.appearance.max_views")
             self.view_rows[kf_id] = len(self.view_rows)
             self.centers = torch.cat([self.centers, center.reshape(1, 3).to(self.centers)])
             self.center_ids = torch.cat([self.center_ids, torch.tensor([kf_id], device=self.center_ids.device)])

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from segs.modules.optim import PrimitiveParams
+from segs.modules.rows import FLOAT, INDEX, PrimitiveRows
 from segs.modules.scene_model import Decoded, View, frustum_mask
 
 
@@ -44,22 +44,35 @@ class DecodeInfo:
 
 
 class AnchorField(nn.Module):
-    """Anchors + the three Scaffold-GS decoders (hidden width `hidden`)."""
+    """Anchors (one PrimitiveRows store) + the three Scaffold-GS decoders (hidden width `hidden`).
 
-    def __init__(self, k: int = 10, feature_dim: int = 32, hidden: int = 32, appearance_dim: int = 0,
-                 use_distance: bool = False, frustum_margin: float = 0.15):  # fmt: skip
+    Rows per anchor: parameters features [F], offsets [k,3], log_scales [6]; buffers xyz [3]
+    (fixed position), kf_tag (the keyframe whose points created it, for loop corrections) and
+    the densification statistics opacity_accum, anchor_visits, grad_accum [k], grad_visits [k].
+    """
+
+    def __init__(self, k: int, feature_dim: int, hidden: int, appearance_dim: int, use_distance: bool, frustum_margin: float):
         super().__init__()
         self.k, self.feature_dim, self.appearance_dim = k, feature_dim, appearance_dim
         self.use_distance, self.frustum_margin = use_distance, frustum_margin
         n_in = feature_dim + 3 + int(use_distance)
-        self.params = PrimitiveParams({"features": (feature_dim,), "offsets": (k, 3), "log_scales": (6,)}, prefix="anchor.")
-        self.register_buffer("xyz", torch.zeros(0, 3))
+        self.rows = PrimitiveRows(
+            params={"features": (feature_dim,), "offsets": (k, 3), "log_scales": (6,)},
+            buffers={"xyz": ((3,), FLOAT), "kf_tag": ((), INDEX), "opacity_accum": ((), FLOAT), "anchor_visits": ((), FLOAT),
+                     "grad_accum": ((k,), FLOAT), "grad_visits": ((k,), FLOAT)},
+            prefix="anchor.",
+        )  # fmt: skip
         self.mlp_opacity = mlp(n_in, hidden, k)
         self.mlp_cov = mlp(n_in, hidden, 7 * k)
         self.mlp_color = mlp(n_in + appearance_dim, hidden, 3 * k)
 
     def __len__(self) -> int:
-        return self.xyz.shape[0]
+        return len(self.rows)
+
+    @property
+    def xyz(self) -> torch.Tensor:
+        """[N,3] anchor positions (a buffer row of the store; edit in place)."""
+        return self.rows.xyz
 
     def decoder_groups(self) -> dict[str, list[nn.Parameter]]:
         return {
@@ -68,24 +81,16 @@ class AnchorField(nn.Module):
             "mlp_color": list(self.mlp_color.parameters()),
         }
 
-    def add(self, xyz: torch.Tensor, features: torch.Tensor, log_scales: torch.Tensor, optimizer) -> None:
-        """Append anchors: positions [M,3], features [M,F], log-scales [M,6]; offsets start at 0."""
-        m = xyz.shape[0]
-        self.params.extend(
-            {"features": features, "offsets": torch.zeros(m, self.k, 3, device=xyz.device), "log_scales": log_scales},
-            optimizer,
-        )
-        self.xyz = torch.cat([self.xyz, xyz.to(self.xyz)])
-
-    def keep(self, mask: torch.Tensor, optimizer) -> None:
-        """Keep anchors where mask [N] is True."""
-        self.params.keep(mask, optimizer)
-        self.xyz = self.xyz[mask]
+    def add(self, xyz: torch.Tensor, features: torch.Tensor, log_scales: torch.Tensor, kf_tag: torch.Tensor, optimizer) -> int:
+        """Append anchors: positions [M,3], features [M,F], log-scales [M,6], source kf ids [M];
+        offsets and statistics start at 0."""
+        offsets = features.new_zeros(xyz.shape[0], self.k, 3)
+        return self.rows.add({"xyz": xyz, "features": features, "offsets": offsets, "log_scales": log_scales, "kf_tag": kf_tag}, optimizer)
 
     def gaussian_positions(self) -> torch.Tensor:
         """[N,k,3] world positions of every anchor's k Gaussians (no gradient)."""
-        scale = torch.exp(self.params["log_scales"].detach()[:, :3])
-        return self.xyz[:, None, :] + self.params["offsets"].detach() * scale[:, None, :]
+        scale = torch.exp(self.rows["log_scales"].detach()[:, :3])
+        return self.xyz[:, None, :] + self.rows["offsets"].detach() * scale[:, None, :]
 
     def decode(self, view: View, embedding: torch.Tensor | None, cull: bool = True) -> tuple[Decoded, DecodeInfo]:
         """Decode the Gaussians of the anchors inside the view frustum (all anchors if not cull).
@@ -101,7 +106,7 @@ class AnchorField(nn.Module):
         xyz = self.xyz[visible]
         rel = xyz - view.center.to(xyz)
         dist = rel.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        x = torch.cat([self.params["features"][visible], rel / dist] + ([dist] if self.use_distance else []), -1)
+        x = torch.cat([self.rows["features"][visible], rel / dist] + ([dist] if self.use_distance else []), -1)
         h_op, h_cov, h_col = self._hidden(x, embedding)
         k = self.k
         opacity = torch.tanh(self.mlp_opacity[2](h_op))  # [V,k]
@@ -109,8 +114,8 @@ class AnchorField(nn.Module):
         anchor = keep // k
         cov = self.mlp_cov[2](h_cov).reshape(-1, 7)[keep]
         color = torch.sigmoid(self.mlp_color[2](h_col).reshape(-1, 3)[keep])
-        scale = torch.exp(self.params["log_scales"][visible])[anchor]  # [M,6]
-        offsets = self.params["offsets"][visible].reshape(-1, 3)[keep]
+        scale = torch.exp(self.rows["log_scales"][visible])[anchor]  # [M,6]
+        offsets = self.rows["offsets"][visible].reshape(-1, 3)[keep]
         decoded = Decoded(
             means=xyz[anchor] + offsets * scale[:, :3],
             quats=F.normalize(cov[:, 3:7], dim=-1),

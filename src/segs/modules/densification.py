@@ -1,4 +1,9 @@
-"""Anchor growing and pruning (the Scaffold-GS rule, as in the SEGS reference implementation).
+"""Densification strategies, stateless dataclasses in gsplat's style (their statistics are rows
+of the primitives' store, segs.modules.rows): `record(...)` after each backward, `adjust(...)`
+grows / prunes rows, Adam moments and statistics together.
+
+AnchorGrowth: anchor growing and pruning (the Scaffold-GS rule, as in the SEGS reference
+implementation).
 
 Statistics (inside the statistics window): per neural Gaussian the norm of its screen-space
 gradient (in NDC units: pixel gradient * (W/2, H/2)) and a visit count; per anchor the summed
@@ -11,84 +16,84 @@ Every `interval` steps inside the growth window:
   parents' features, log-scales log(cell size), offsets 0;
 - pruning: anchors with accumulated opacity < min_opacity * visits once visits > interval *
   success are removed; anchors past that visit count restart their statistics.
+
+AdaptiveDensity: plain 3D-GS (Kerbl et al. 2023): Gaussians with a large average screen-space
+gradient are cloned (small) or split in two (large, children scaled by 1/1.6 and drawn from the
+parent); transparent ones, and after the first opacity reset too large ones, are pruned.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
-from torch import nn
 
 from segs.modules.anchors import AnchorField, DecodeInfo
+from segs.modules.geometry import quat_to_rotmat
+from segs.modules.rows import PrimitiveRows
 from segs.modules.sepm import voxelize
 
 
-class AnchorDensifier(nn.Module):
-    """Densification statistics (buffers aligned with the anchors) and the grow / prune step."""
+@dataclass
+class AnchorGrowth:
+    """The SEGS strategy (stateless: its statistics are rows of the anchor store).
 
-    def __init__(self, k: int, voxel_size: float, grad_threshold: float = 2e-4, update_depth: int = 3,
-                 init_factor: int = 16, hierarchy_factor: int = 4, min_opacity: float = 0.005,
-                 success_threshold: float = 0.8, max_anchors: int = 200_000):  # fmt: skip
-        super().__init__()
-        self.k, self.voxel_size, self.grad_threshold = k, voxel_size, grad_threshold
-        self.update_depth, self.init_factor, self.hierarchy_factor = update_depth, init_factor, hierarchy_factor
-        self.min_opacity, self.success_threshold, self.max_anchors = min_opacity, success_threshold, max_anchors
-        self.register_buffer("opacity_accum", torch.zeros(0))
-        self.register_buffer("anchor_visits", torch.zeros(0))
-        self.register_buffer("grad_accum", torch.zeros(0, k))
-        self.register_buffer("grad_visits", torch.zeros(0, k))
+    Windows in reference-run steps: statistics from `stats_from`, grow / prune rounds every
+    `interval` steps (scaled with the run when `scale_interval`) from `grow_from`, both until `until`.
+    """
 
-    def extend(self, m: int) -> None:
-        dev = self.opacity_accum.device
-        self.opacity_accum = torch.cat([self.opacity_accum, torch.zeros(m, device=dev)])
-        self.anchor_visits = torch.cat([self.anchor_visits, torch.zeros(m, device=dev)])
-        self.grad_accum = torch.cat([self.grad_accum, torch.zeros(m, self.k, device=dev)])
-        self.grad_visits = torch.cat([self.grad_visits, torch.zeros(m, self.k, device=dev)])
-
-    def keep(self, mask: torch.Tensor) -> None:
-        for name in ("opacity_accum", "anchor_visits", "grad_accum", "grad_visits"):
-            setattr(self, name, getattr(self, name)[mask])
-
-    def resize_(self, n: int) -> None:
-        dev = self.opacity_accum.device
-        self.opacity_accum, self.anchor_visits = torch.zeros(n, device=dev), torch.zeros(n, device=dev)
-        self.grad_accum, self.grad_visits = torch.zeros(n, self.k, device=dev), torch.zeros(n, self.k, device=dev)
+    stats_from: int
+    grow_from: int
+    until: int
+    interval: int
+    scale_interval: bool
+    grad_threshold: float
+    update_depth: int
+    init_factor: int
+    hierarchy_factor: int
+    min_opacity: float
+    success_threshold: float
 
     @torch.no_grad()
-    def record(self, info: DecodeInfo, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int, height: int) -> None:
+    def record(self, field: AnchorField, info: DecodeInfo, means2d_grad: torch.Tensor | None, radii: torch.Tensor,
+               width: int, height: int) -> None:  # fmt: skip
         """Accumulate one view's statistics; means2d_grad [M,2] and radii [M] of the rendered Gaussians."""
-        vis = info.visible
-        self.opacity_accum[vis] += info.opacity.clamp_min(0).sum(1)
-        self.anchor_visits[vis] += 1
+        rows, vis = field.rows, info.visible
+        rows.opacity_accum[vis] += info.opacity.clamp_min(0).sum(1).to(rows.opacity_accum)
+        rows.anchor_visits[vis] += 1
         if means2d_grad is None or vis.numel() == 0:
             return
-        slots = info.slots(self.k)
+        slots = info.slots(field.k)
         drawn = radii > 0
-        norm = (means2d_grad[drawn] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)).norm(dim=-1)
-        self.grad_accum.view(-1).index_add_(0, slots[drawn], norm)
-        self.grad_visits.view(-1).index_add_(0, slots[drawn], torch.ones_like(norm))
+        ndc = means2d_grad.new_tensor([width / 2.0, height / 2.0])
+        norm = (means2d_grad[drawn] * ndc).norm(dim=-1).to(rows.grad_accum)
+        rows.grad_accum.view(-1).index_add_(0, slots[drawn], norm)
+        rows.grad_visits.view(-1).index_add_(0, slots[drawn], torch.ones_like(norm))
 
     @torch.no_grad()
-    def adjust(self, field: AnchorField, tags: torch.Tensor, interval: int, optimizer, generator: torch.Generator | None = None) -> tuple[dict, torch.Tensor]:
-        """Grow then prune; returns (log numbers, kf tags of the surviving anchors)."""
-        seen = self.grad_visits > interval * self.success_threshold * 0.5
-        grads = self.grad_accum / self.grad_visits.clamp_min(1.0)
-        grown, tags = self._grow(field, tags, grads, seen, optimizer, generator)
-        self.grad_accum[: seen.shape[0]][seen] = 0.0
-        self.grad_visits[: seen.shape[0]][seen] = 0.0
-        pruned, tags = self._prune(field, tags, interval, optimizer)
-        return {"grown": grown, "pruned": pruned, "anchors": len(field)}, tags
+    def adjust(self, field: AnchorField, optimizer, interval: int, voxel_size: float, max_anchors: int,
+               generator: torch.Generator | None = None) -> dict:  # fmt: skip
+        """Grow then prune (rows, moments and statistics together); returns numbers to log."""
+        rows = field.rows
+        seen = rows.grad_visits > interval * self.success_threshold * 0.5
+        grads = rows.grad_accum / rows.grad_visits.clamp_min(1.0)
+        grown = self._grow(field, grads, seen, optimizer, voxel_size, max_anchors, generator)
+        rows.grad_accum[: seen.shape[0]][seen] = 0.0
+        rows.grad_visits[: seen.shape[0]][seen] = 0.0
+        pruned = self._prune(field, interval, optimizer)
+        return {"grown": grown, "pruned": pruned, "anchors": len(field)}
 
-    def _grow(self, field, tags, grads, seen, optimizer, generator) -> tuple[int, torch.Tensor]:
-        n0 = len(field)
+    def _grow(self, field, grads, seen, optimizer, voxel_size, max_anchors, generator) -> int:
+        n0, k = len(field), field.k
         positions = field.gaussian_positions()  # [N,k,3] of the anchors before growing
-        parent_of_slot = torch.arange(n0, device=positions.device).unsqueeze(1).expand(n0, self.k)
+        parent_of_slot = torch.arange(n0, device=positions.device).unsqueeze(1).expand(n0, k)
+        features, tags = field.rows.features.detach()[:n0], field.rows.kf_tag[:n0]
         total = 0
         for m in range(self.update_depth):
-            room = self.max_anchors - len(field)
+            room = max_anchors - len(field)
             if room <= 0:
                 break
-            size = self.voxel_size * self.init_factor / self.hierarchy_factor**m
+            size = voxel_size * self.init_factor / self.hierarchy_factor**m
             rand = torch.rand(grads.shape, generator=generator, device=grads.device)
             cand = seen & (grads >= self.grad_threshold * 2**m) & (rand > 0.5 ** (m + 1))
             if not bool(cand.any()):
@@ -98,27 +103,92 @@ class AnchorDensifier(nn.Module):
                 continue
             parents = parent_of_slot[cand]
             ok = cell >= 0
-            feats = torch.full((centres.shape[0], field.feature_dim), -math.inf, device=centres.device)
-            feats = feats.scatter_reduce(0, cell[ok, None].expand(-1, field.feature_dim), field.params["features"].detach()[parents[ok]], reduce="amax")
-            new_tags = torch.zeros(centres.shape[0], dtype=tags.dtype, device=tags.device).scatter_(0, cell[ok], tags[parents[ok]])
+            feats = centres.new_full((centres.shape[0], field.feature_dim), -math.inf)
+            feats = feats.scatter_reduce(0, cell[ok, None].expand(-1, field.feature_dim), features[parents[ok]].to(feats), reduce="amax")
+            new_tags = tags.new_zeros(centres.shape[0]).scatter_(0, cell[ok], tags[parents[ok]])
             if centres.shape[0] > room:  # anchor cap: keep the cells with the strongest gradient
-                strength = torch.zeros(centres.shape[0], device=centres.device).scatter_reduce(0, cell[ok], grads[cand][ok], reduce="amax")
+                strength = grads.new_zeros(centres.shape[0]).scatter_reduce(0, cell[ok], grads[cand][ok], reduce="amax")
                 top = torch.argsort(strength, descending=True)[:room]
                 centres, feats, new_tags = centres[top], feats[top], new_tags[top]
-            field.add(centres, feats, torch.full((centres.shape[0], 6), math.log(size), device=centres.device), optimizer)
-            self.extend(centres.shape[0])
-            tags = torch.cat([tags, new_tags])
-            total += centres.shape[0]
-        return total, tags
+            total += field.add(centres, feats, centres.new_full((centres.shape[0], 6), math.log(size)), new_tags, optimizer)
+        return total
 
-    def _prune(self, field, tags, interval, optimizer) -> tuple[int, torch.Tensor]:
-        enough = self.anchor_visits > interval * self.success_threshold
-        prune = (self.opacity_accum < self.min_opacity * self.anchor_visits) & enough
-        self.opacity_accum[enough] = 0.0
-        self.anchor_visits[enough] = 0.0
+    def _prune(self, field, interval, optimizer) -> int:
+        rows = field.rows
+        enough = rows.anchor_visits > interval * self.success_threshold
+        prune = (rows.opacity_accum < self.min_opacity * rows.anchor_visits) & enough
+        rows.opacity_accum[enough] = 0.0
+        rows.anchor_visits[enough] = 0.0
         if not bool(prune.any()):
-            return 0, tags
-        keep = ~prune
-        field.keep(keep, optimizer)
-        self.keep(keep)
-        return int(prune.sum()), tags[keep]
+            return 0
+        rows.keep(~prune, optimizer)
+        return int(prune.sum())
+
+
+@dataclass
+class AdaptiveDensity:
+    """The plain 3D-GS strategy (stateless: statistics grad_accum, grad_count, max_radii are rows
+    of the Gaussians' store). Windows in reference-run steps, as AnchorGrowth's."""
+
+    from_step: int
+    until_step: int
+    interval: int
+    scale_interval: bool
+    grad_threshold: float
+    percent_dense: float
+    opacity_reset_interval: int
+    min_opacity: float
+    max_screen_radius: float
+
+    @torch.no_grad()
+    def record(self, rows: PrimitiveRows, means2d_grad: torch.Tensor | None, radii: torch.Tensor, width: int, height: int) -> None:
+        """Accumulate one view: means2d_grad [N,2] and radii [N] of every Gaussian (None: no gradient)."""
+        if means2d_grad is None or means2d_grad.shape[0] != len(rows):
+            return
+        visible = radii > 0
+        ndc = means2d_grad * means2d_grad.new_tensor([width / 2.0, height / 2.0])
+        rows.grad_accum[visible] += ndc[visible].norm(dim=-1).to(rows.grad_accum)
+        rows.grad_count[visible] += 1
+        rows.max_radii[visible] = torch.maximum(rows.max_radii[visible], radii[visible].to(rows.max_radii))
+
+    @torch.no_grad()
+    def adjust(self, rows: PrimitiveRows, optimizer, scene_extent: float, max_gaussians: int, prune_big: bool) -> dict:
+        """Clone / split / prune; statistics restart. Returns {"cloned", "split", "pruned"}."""
+        grads = rows.grad_accum / rows.grad_count.clamp_min(1)
+        big = torch.exp(rows.log_scales).max(1).values > self.percent_dense * scene_extent
+        hot = grads >= self.grad_threshold
+        room = max_gaussians - len(rows)
+        clone, split = hot & ~big, hot & big
+        if int(clone.sum()) + int(split.sum()) > room:  # keep the strongest candidates under the cap
+            order = torch.argsort(torch.where(hot, grads, torch.full_like(grads, -1.0)), descending=True)
+            allowed = torch.zeros_like(hot)
+            allowed[order[: max(room, 0)]] = True
+            clone, split = clone & allowed, split & allowed
+        clones, children = _take(rows, clone), _split_rows(rows, split)
+        new = {k: torch.cat([clones[k], children[k]]) for k in clones}
+        rows.add(new, optimizer)
+        drop = torch.sigmoid(rows.opacities).squeeze(1) < self.min_opacity
+        drop[: split.shape[0]] |= split  # split parents are replaced by their two children
+        if prune_big:
+            drop |= rows.max_radii > self.max_screen_radius
+            drop |= torch.exp(rows.log_scales).max(1).values > 0.1 * scene_extent
+        rows.keep(~drop, optimizer)
+        rows.grad_accum.zero_(), rows.grad_count.zero_(), rows.max_radii.zero_()
+        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(drop.sum())}
+
+
+def _take(rows: PrimitiveRows, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Copies of the parameters and source-keyframe tags of the masked rows (statistics start at 0)."""
+    out = {k: v.detach()[mask] for k, v in rows.parameters_by_name().items()}
+    out["kf_tag"] = rows.kf_tag[mask]
+    return out
+
+
+def _split_rows(rows: PrimitiveRows, mask: torch.Tensor, n: int = 2) -> dict[str, torch.Tensor]:
+    """n children per masked Gaussian: means drawn from the parent, scales / (0.8 n)."""
+    out = {k: v.repeat(n, *([1] * (v.dim() - 1))) for k, v in _take(rows, mask).items()}
+    scales = torch.exp(out["log_scales"])
+    offsets = torch.randn_like(scales) * scales
+    out["means"] = out["means"] + (quat_to_rotmat(out["quats"]) @ offsets.unsqueeze(-1)).squeeze(-1)
+    out["log_scales"] = torch.log(scales / (0.8 * n))
+    return out

@@ -49,7 +49,8 @@ def phase_loss(fr: torch.Tensor, fg: torch.Tensor, mask: torch.Tensor) -> torch.
     return (mask * diff).sum() / (mask.sum() * fr.shape[0]).clamp_min(1.0)
 
 
-def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", hp_ratio: float = 0.4, lp_ratio: float = 0.1) -> torch.Tensor:
+def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", hp_ratio: float = 0.4,
+                   lp_ratio: float = 0.1) -> torch.Tensor:  # fmt: skip
     """L_hf of one scale for [C,H,W] images."""
     h, w = render.shape[-2:]
     fr, fg = spectrum(render), spectrum(gt)
@@ -62,10 +63,11 @@ def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", h
     return loss
 
 
-def fpr_loss(render: torch.Tensor, gt: torch.Tensor, scales: int = 3, mode: str = "high", hp_ratio: float = 0.4, lp_ratio: float = 0.1) -> torch.Tensor:
+def fpr_loss(render: torch.Tensor, gt: torch.Tensor, scales: int = 3, mode: str = "high", hp_ratio: float = 0.4,
+             lp_ratio: float = 0.1) -> torch.Tensor:  # fmt: skip
     """sum_s 2^-s L_hf(down_s(render), down_s(gt)) for [H,W,C] images, s = 0..scales-1."""
     if mode not in MODES:
-        raise ValueError(f"fpr.mode must be one of {MODES}, got {mode!r}")
+        raise ValueError(f"model.fpr.mode must be one of {MODES}, got {mode!r}")
     r0 = render.permute(2, 0, 1).unsqueeze(0)
     g0 = gt.permute(2, 0, 1).unsqueeze(0)
     h, w = r0.shape[-2:]

@@ -20,9 +20,9 @@ def apply_similarity(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """[3,3] rotation -> [4] wxyz quaternion (w >= 0)."""
+    """[3,3] rotation -> [4] wxyz quaternion (w >= 0), in R's dtype and on its device."""
     x, y, z, w = Rotation.from_matrix(R.detach().cpu().double().numpy()).as_quat()
-    q = torch.tensor([w, x, y, z], dtype=torch.float32, device=R.device)
+    q = torch.tensor([w, x, y, z], dtype=R.dtype, device=R.device)
     return q if q[0] >= 0 else -q
 
 
@@ -59,12 +59,12 @@ def knn_mean_sq_dist(query: torch.Tensor, reference: torch.Tensor, k: int = 3) -
     """Mean squared distance of each query point [M,3] to its k nearest reference points [R,3].
 
     A query point that is itself in reference is not its own neighbour (distance 0 skipped).
-    Returns [M] on query's device (a large value when the reference has no other point).
+    Returns [M] in query's dtype, on its device (a large value when the reference has no other point).
     """
     ref = reference.detach().cpu().double().numpy()
     q = query.detach().cpu().double().numpy()
     if len(ref) == 0 or len(q) == 0:
-        return torch.full((len(q),), 1e-2, device=query.device)
+        return torch.full((len(q),), 1e-2, dtype=query.dtype, device=query.device)
     kk = min(k + 1, len(ref))
     dist, _ = cKDTree(ref).query(q, k=kk)
     dist = np.asarray(dist, np.float64).reshape(len(q), kk)
@@ -72,4 +72,4 @@ def knn_mean_sq_dist(query: torch.Tensor, reference: torch.Tensor, k: int = 3) -
     finite = np.isfinite(dist)
     n = finite.sum(1)
     mean = np.where(n > 0, np.where(finite, dist**2, 0.0).sum(1) / np.maximum(n, 1), 1e-2)
-    return torch.from_numpy(np.maximum(mean, 1e-14)).float().to(query.device)
+    return torch.from_numpy(np.maximum(mean, 1e-14)).to(query)

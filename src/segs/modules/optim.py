@@ -1,7 +1,5 @@
-"""One Adam with named parameter groups, and in-place growth / pruning of per-primitive tensors.
-
-Growth and pruning replace a parameter by a longer or shorter one; its Adam moments are carried
-over row by row (new rows start at zero), so surviving primitives keep their optimizer state.
+"""One Adam with named parameter groups, learning-rate schedules, and the swap of a parameter
+for a longer or shorter one with its Adam moments carried over row by row (segs.modules.rows).
 """
 from __future__ import annotations
 
@@ -43,7 +41,7 @@ def set_learning_rates(optimizer: torch.optim.Optimizer, schedules: dict[str, Lr
             group["lr"] = sched(step)
 
 
-def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, new: nn.Parameter, fix) -> None:
+def swap_parameter(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, new: nn.Parameter, fix) -> None:
     """Point the optimizer at `new` instead of `old`, mapping each moment tensor through fix()."""
     if optimizer is None:
         return
@@ -57,63 +55,3 @@ def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, new: nn.Pa
                         k: (fix(v) if torch.is_tensor(v) and v.shape == old.shape else v) for k, v in state.items()
                     }
                 return
-
-
-class PrimitiveParams(nn.Module):
-    """Per-primitive parameters sharing the leading dimension N (anchors or Gaussians).
-
-    tensors: name -> [N, ...]; each becomes its own optimizer group "<prefix><name>".
-    """
-
-    def __init__(self, shapes: dict[str, tuple[int, ...]], prefix: str = ""):
-        super().__init__()
-        self.prefix = prefix
-        self.shapes = dict(shapes)
-        self.params = nn.ParameterDict({k: nn.Parameter(torch.zeros((0, *s))) for k, s in shapes.items()})
-
-    def __len__(self) -> int:
-        return next(iter(self.params.values())).shape[0] if self.params else 0
-
-    def __getitem__(self, name: str) -> nn.Parameter:
-        return self.params[name]
-
-    def group_name(self, name: str) -> str:
-        return f"{self.prefix}{name}"
-
-    def groups(self, lrs: dict[str, float]) -> list[dict]:
-        return [{"name": self.group_name(k), "params": [p], "lr": lrs[k]} for k, p in self.params.items()]
-
-    def extend(self, rows: dict[str, torch.Tensor], optimizer: torch.optim.Optimizer | None) -> None:
-        """Append rows (name -> [M, ...]) to every tensor; new Adam moments are zero."""
-        if set(rows) != set(self.params):
-            raise ValueError(f"extend needs exactly {sorted(self.params)}, got {sorted(rows)}")
-        m = {v.shape[0] for v in rows.values()}
-        if len(m) != 1:
-            raise ValueError(f"rows of different lengths: { {k: v.shape for k, v in rows.items()} }")
-        for k, old in list(self.params.items()):
-            extra = rows[k].detach().to(device=old.device, dtype=old.dtype)
-            new = nn.Parameter(torch.cat([old.detach(), extra], 0))
-            _swap(optimizer, old, new, lambda v, e=extra: torch.cat([v, torch.zeros_like(e)], 0))
-            self.params[k] = new
-
-    def keep(self, mask: torch.Tensor, optimizer: torch.optim.Optimizer | None) -> None:
-        """Keep rows where mask [N] bool is True (moments of kept rows preserved)."""
-        for k, old in list(self.params.items()):
-            new = nn.Parameter(old.detach()[mask].clone())
-            _swap(optimizer, old, new, lambda v: v[mask])
-            self.params[k] = new
-
-    def assign(self, name: str, value: torch.Tensor, optimizer: torch.optim.Optimizer | None, reset_state: bool = False) -> None:
-        """Overwrite one tensor in place of the same shape (e.g. opacity reset), optionally zeroing moments."""
-        old = self.params[name]
-        with torch.no_grad():
-            old.copy_(value)
-        if reset_state and optimizer is not None and old in optimizer.state:
-            for v in optimizer.state[old].values():
-                if torch.is_tensor(v) and v.shape == old.shape:
-                    v.zero_()
-
-    def resize_(self, n: int) -> None:
-        """Re-create empty tensors of length n (before load_state_dict of a checkpoint)."""
-        for k, s in self.shapes.items():
-            self.params[k] = nn.Parameter(torch.zeros((n, *s), device=self.params[k].device))

@@ -11,11 +11,12 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from segs.errors import ConfigError
 from segs.modules import losses
+from segs.modules.config import PlainConfig
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
-from segs.modules.geometry import apply_similarity, knn_mean_sq_dist, quat_multiply, quat_to_rotmat, rotmat_to_quat, split_similarity
-from segs.modules.optim import LrSchedule, PrimitiveParams
+from segs.modules.geometry import apply_similarity, knn_mean_sq_dist, quat_multiply, rotmat_to_quat, split_similarity
+from segs.modules.optim import LrSchedule
+from segs.modules.rows import FLOAT, INDEX, PrimitiveRows
 from segs.modules.scene_model import Decoded, SceneModel, View
 from segs.modules.sh import eval_sh
 
@@ -27,63 +28,38 @@ def _logit(p: float) -> float:
 class PlainGaussians(SceneModel):
     """Unstructured 3D Gaussians with SH colours.
 
-    Per Gaussian: means [N,3], log_scales [N,3], quats [N,4] (wxyz, unnormalised), opacity
-    logits [N,1], sh_dc [N,1,3], sh_rest [N,(D+1)^2-1,3]; buffers: creating kf id [N] and the
-    densification statistics.
+    Rows per Gaussian (one PrimitiveRows store `gs`): parameters means [3], log_scales [3],
+    quats [4] (wxyz, unnormalised), opacity logits [1], sh_dc [1,3], sh_rest [(D+1)^2-1,3];
+    buffers kf_tag (creating keyframe) and the statistics grad_accum, grad_count, max_radii.
     """
 
-    def __init__(
-        self,
-        sh_degree: int = 3,
-        sh_increase_every: int = 1000,
-        lambda_dssim: float = 0.2,
-        lambda_depth: float = 0.0,
-        init_opacity: float = 0.1,
-        max_gaussians: int = 300_000,
-        lr: dict | None = None,
-        densify: dict | None = None,
-        total_steps: int = 30000,
-        reference_steps: int = 30000,
-        budget_mb: float | None = None,
-    ):
+    LEGACY_STATE_KEYS = {"gs.params.": "gs.", "kf_tags": "gs.kf_tag", "grad_accum": "gs.grad_accum",
+                         "grad_count": "gs.grad_count", "max_radii": "gs.max_radii"}  # fmt: skip
+
+    def __init__(self, cfg: PlainConfig):
         super().__init__()
-        lr = dict(lr or {})
-        d = dict(densify or {})
-        if not 0 <= sh_degree <= 3:
-            raise ConfigError(f"model.sh_degree={sh_degree} is out of range: expected 0..3")
-        if not 0 < init_opacity < 1:
-            raise ConfigError(f"model.init_opacity={init_opacity} is out of range: expected (0, 1)")
-        if max_gaussians <= 0:
-            raise ConfigError(f"model.max_gaussians={max_gaussians} is out of range: expected > 0")
-        for k, v in lr.items():
-            if v is not None and v < 0:
-                raise ConfigError(f"model.lr.{k}={v} is out of range: expected >= 0")
-        self.sh_degree, self.sh_increase_every = sh_degree, sh_increase_every
-        self.lambda_dssim, self.lambda_depth = lambda_dssim, lambda_depth
-        self.init_opacity, self.max_gaussians = init_opacity, max_gaussians
-        if budget_mb is not None:
-            if budget_mb <= 0:
-                raise ConfigError(f"model.budget_mb={budget_mb} is out of range: expected > 0 (MB) or null")
-            floats = 3 + 3 + 4 + 1 + 3 * (sh_degree + 1) ** 2  # means, scales, quats, opacity, SH
-            self.max_gaussians = min(max_gaussians, max(int(budget_mb * 1e6 / 4 // floats), 1))
-        if total_steps <= 0 or reference_steps <= 0:
-            raise ConfigError(f"model.total_steps={total_steps}, reference_steps={reference_steps}: expected > 0")
-        self.lr, self.densify_cfg, self.total_steps = lr, d, total_steps
-        self.scale = total_steps / reference_steps
-        k_rest = (sh_degree + 1) ** 2 - 1
-        self.gs = PrimitiveParams(
-            {"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (1,), "sh_dc": (1, 3), "sh_rest": (k_rest, 3)},
+        self.sh_degree, self.sh_increase_every = cfg.sh_degree, cfg.sh_increase_every
+        self.lambda_dssim, self.lambda_depth = cfg.lambda_dssim, cfg.lambda_depth
+        self.init_opacity, self.max_gaussians = cfg.init_opacity, cfg.max_gaussians
+        if cfg.budget_mb is not None:
+            floats = 3 + 3 + 4 + 1 + 3 * (cfg.sh_degree + 1) ** 2  # means, scales, quats, opacity, SH
+            self.max_gaussians = min(cfg.max_gaussians, max(int(cfg.budget_mb * 1e6 / 4 // floats), 1))
+        self.lr, self.densify, self.total_steps = cfg.lr, cfg.densify, cfg.total_steps
+        self.scale = cfg.total_steps / cfg.reference_steps
+        k_rest = (cfg.sh_degree + 1) ** 2 - 1
+        self.gs = PrimitiveRows(
+            params={"means": (3,), "log_scales": (3,), "quats": (4,), "opacities": (1,), "sh_dc": (1, 3), "sh_rest": (k_rest, 3)},
+            buffers={"kf_tag": ((), INDEX), "grad_accum": ((), FLOAT), "grad_count": ((), FLOAT), "max_radii": ((), FLOAT)},
             prefix="gs.",
         )
-        for name in ("kf_tags", "grad_accum", "grad_count", "max_radii"):
-            self.register_buffer(name, torch.zeros(0, dtype=torch.int64 if name == "kf_tags" else torch.float32))
 
     # -- bridge ---------------------------------------------------------------------------------
     def add_points(self, xyz, rgb, kf_ids, optimizer) -> int:
         if xyz.shape[0] == 0:
             return 0
         room = self.max_gaussians - len(self.gs)
-        xyz, rgb, kf_ids = xyz[:room].float(), rgb[:room].float(), kf_ids[:room]
+        like = self.gs["means"]  # new rows take the parameters' dtype and device
+        xyz, rgb, kf_ids = xyz[:room].to(like), rgb[:room].to(like), kf_ids[:room]
         m = xyz.shape[0]
         if m == 0:
             return 0
@@ -91,25 +67,25 @@ class PlainGaussians(SceneModel):
         rows = {
             "means": xyz,
             "log_scales": torch.log(torch.sqrt(d2)).unsqueeze(1).repeat(1, 3),
-            "quats": torch.tensor([1.0, 0, 0, 0], device=xyz.device).repeat(m, 1),
-            "opacities": torch.full((m, 1), _logit(self.init_opacity), device=xyz.device),
+            "quats": xyz.new_tensor([1.0, 0, 0, 0]).repeat(m, 1),
+            "opacities": xyz.new_full((m, 1), _logit(self.init_opacity)),
             "sh_dc": rgb_to_sh_dc(rgb).unsqueeze(1),
-            "sh_rest": torch.zeros(m, self.gs.shapes["sh_rest"][0], 3, device=xyz.device),
+            "sh_rest": xyz.new_zeros(m, self.gs.param_shapes["sh_rest"][0], 3),
+            "kf_tag": kf_ids,
         }
-        self.gs.extend(rows, optimizer)
-        self._extend_buffers(kf_ids.to(torch.int64))
-        return m
+        return self.gs.add(rows, optimizer)
 
     def correct_map(self, transforms, optimizer) -> int:
         moved = 0
         for kf_id, T in transforms.items():
-            mask = self.kf_tags == int(kf_id)
+            mask = self.gs.kf_tag == int(kf_id)
             if not bool(mask.any()):
                 continue
-            R, _, s = split_similarity(T.float())
+            T = T.to(self.gs["means"])
+            R, _, s = split_similarity(T)
             qR = rotmat_to_quat(R)
             with torch.no_grad():
-                self.gs["means"][mask] = apply_similarity(T.float(), self.gs["means"][mask])
+                self.gs["means"][mask] = apply_similarity(T, self.gs["means"][mask])
                 self.gs["quats"][mask] = quat_multiply(qR.expand(int(mask.sum()), 4), self.gs["quats"][mask])
                 self.gs["log_scales"][mask] += math.log(s)
             moved += int(mask.sum())
@@ -117,20 +93,14 @@ class PlainGaussians(SceneModel):
 
     # -- optimisation ---------------------------------------------------------------------------
     def param_groups(self) -> list[dict]:
-        lrs = {
-            "means": self.lr.get("means", 1.6e-4) * self.scene_extent,
-            "log_scales": self.lr.get("scales", 5e-3),
-            "quats": self.lr.get("quats", 1e-3),
-            "opacities": self.lr.get("opacities", 0.05),
-            "sh_dc": self.lr.get("sh_dc", 2.5e-3),
-            "sh_rest": self.lr.get("sh_rest", 1.25e-4),
-        }
+        lr = self.lr
+        lrs = {"means": lr.means * self.scene_extent, "log_scales": lr.scales, "quats": lr.quats, "opacities": lr.opacities,
+               "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}  # fmt: skip
         return self.gs.groups(lrs)
 
     def lr_schedules(self) -> dict[str, LrSchedule]:
-        init = self.lr.get("means", 1.6e-4) * self.scene_extent
-        final = self.lr.get("means_final", 1.6e-6) * self.scene_extent
-        return {"gs.means": LrSchedule(init, final, self.total_steps)}
+        lr = self.lr
+        return {"gs.means": LrSchedule(lr.means * self.scene_extent, lr.means_final * self.scene_extent, self.total_steps)}
 
     def _at(self, step_ref: float) -> int:
         """A reference-run (30k) iteration number in this run's steps."""
@@ -161,83 +131,22 @@ class PlainGaussians(SceneModel):
         return terms
 
     def after_backward(self, decoded, render, step) -> None:
-        grad = render.means2d.grad
-        if grad is None or grad.shape[0] != len(self.gs):
-            return
         h, w = render.image.shape[:2]
-        visible = render.radii > 0
-        ndc = grad.detach() * torch.tensor([w / 2.0, h / 2.0], device=grad.device)
-        self.grad_accum[visible] += ndc[visible].norm(dim=-1)
-        self.grad_count[visible] += 1
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], render.radii[visible].float())
+        self.densify.record(self.gs, render.means2d.grad, render.radii, w, h)
 
     # -- densification --------------------------------------------------------------------------
     def maintain(self, step, optimizer) -> dict[str, float]:
-        d = self.densify_cfg
-        start, until = self._at(d.get("from_step", 500)), self._at(d.get("until_step", 15000))
-        reset = self._at(d.get("opacity_reset_interval", 3000))
+        d = self.densify
+        start, until, reset = self._at(d.from_step), self._at(d.until_step), self._at(d.opacity_reset_interval)
         # as SEGS's growth: densify every `interval` steps (statistics of ~100 views) unless scaled
-        interval = self._at(d.get("interval", 100)) if d.get("scale_interval", False) else int(d.get("interval", 100))
+        interval = self._at(d.interval) if d.scale_interval else int(d.interval)
         out: dict[str, float] = {}
         if start <= step < until and step % interval == 0 and len(self.gs):
-            out = self._densify_and_prune(step > reset, optimizer)
+            out = d.adjust(self.gs, optimizer, self.scene_extent, self.max_gaussians, prune_big=step > reset)
         if reset > 0 and start <= step < until and step % reset == 0 and len(self.gs):
-            capped = torch.minimum(self.gs["opacities"].detach(), torch.full_like(self.gs["opacities"], _logit(0.01)))
+            capped = torch.minimum(self.gs.opacities.detach(), torch.full_like(self.gs.opacities, _logit(0.01)))
             self.gs.assign("opacities", capped, optimizer, reset_state=True)
         return out
-
-    def _densify_and_prune(self, prune_big: bool, optimizer) -> dict[str, float]:
-        d = self.densify_cfg
-        grads = self.grad_accum / self.grad_count.clamp_min(1)
-        big = torch.exp(self.gs["log_scales"].detach()).max(1).values > d.get("percent_dense", 0.01) * self.scene_extent
-        hot = grads >= d.get("grad_threshold", 2e-4)
-        room = self.max_gaussians - len(self.gs)
-        clone, split = hot & ~big, hot & big
-        if int(clone.sum()) + int(split.sum()) > room:  # keep the strongest candidates under the cap
-            order = torch.argsort(torch.where(hot, grads, torch.full_like(grads, -1.0)), descending=True)
-            allowed = torch.zeros_like(hot)
-            allowed[order[: max(room, 0)]] = True
-            clone, split = clone & allowed, split & allowed
-        n_clone, n_split = int(clone.sum()), int(split.sum())
-        rows = self._clone_rows(clone)
-        split_rows = self._split_rows(split)
-        new = {k: torch.cat([rows[k], split_rows[k]]) for k in rows}
-        tags = torch.cat([self.kf_tags[clone], self.kf_tags[split].repeat(2)])
-        self.gs.extend(new, optimizer)
-        self._extend_buffers(tags)
-        op = torch.sigmoid(self.gs["opacities"].detach()).squeeze(1)
-        drop = op < d.get("min_opacity", 0.005)
-        drop[: split.shape[0]] |= split  # split parents are replaced by their two children
-        if prune_big:
-            drop |= self.max_radii > d.get("max_screen_radius", 20.0)
-            drop |= torch.exp(self.gs["log_scales"].detach()).max(1).values > 0.1 * self.scene_extent
-        self._keep(~drop, optimizer)
-        self.grad_accum.zero_(), self.grad_count.zero_(), self.max_radii.zero_()
-        return {"cloned": n_clone, "split": n_split, "pruned": int(drop.sum())}
-
-    def _clone_rows(self, mask) -> dict[str, torch.Tensor]:
-        return {k: v.detach()[mask] for k, v in self.gs.params.items()}
-
-    def _split_rows(self, mask, n: int = 2) -> dict[str, torch.Tensor]:
-        rows = {k: v.detach()[mask].repeat(n, *([1] * (v.dim() - 1))) for k, v in self.gs.params.items()}
-        scales = torch.exp(rows["log_scales"])
-        offsets = torch.randn_like(scales) * scales
-        rot = quat_to_rotmat(rows["quats"])
-        rows["means"] = rows["means"] + (rot @ offsets.unsqueeze(-1)).squeeze(-1)
-        rows["log_scales"] = torch.log(scales / (0.8 * n))
-        return rows
-
-    def _extend_buffers(self, tags: torch.Tensor) -> None:
-        m = tags.shape[0]
-        self.kf_tags = torch.cat([self.kf_tags, tags.to(self.kf_tags.device)])
-        for name in ("grad_accum", "grad_count", "max_radii"):
-            buf = getattr(self, name)
-            setattr(self, name, torch.cat([buf, torch.zeros(m, device=buf.device)]))
-
-    def _keep(self, keep: torch.Tensor, optimizer) -> None:
-        self.gs.keep(keep, optimizer)
-        for name in ("kf_tags", "grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, getattr(self, name)[keep])
 
     @torch.no_grad()
     def count_active(self, view: View, threshold: float = 0.005) -> int:
@@ -250,11 +159,7 @@ class PlainGaussians(SceneModel):
         return {"anchors": 0, "gaussians": len(self.gs), "params": n_params, "mb": n_params * 4 / 1e6}
 
     def resize_for_state(self, state_dict) -> None:
-        n = state_dict["gs.params.means"].shape[0]
-        self.gs.resize_(n)
-        self.kf_tags = torch.zeros(n, dtype=torch.int64, device=self.kf_tags.device)
-        for name in ("grad_accum", "grad_count", "max_radii"):
-            setattr(self, name, torch.zeros(n, device=self.kf_tags.device))
+        self.gs.resize(state_dict["gs.means"].shape[0])
 
     def export_ply(self, path: str | Path, view: View) -> int:
         g = self.gs

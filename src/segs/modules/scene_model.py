@@ -65,6 +65,19 @@ def frustum_mask(points: torch.Tensor, view: View, margin: float = 0.15, near: f
     return (z > near) & (u > -mu) & (u < c.width + mu) & (v > -mv) & (v < c.height + mv)
 
 
+def upgrade_state_keys(state: dict, renames: dict[str, str], prefix: str = "") -> dict:
+    """state with keys `prefix + old` renamed to `prefix + new` (old ending in "." : a prefix)."""
+    out = {}
+    for key, value in state.items():
+        name = key.removeprefix(prefix) if key.startswith(prefix) else None
+        for old, new in renames.items() if name is not None else ():
+            if name == old or (old.endswith(".") and name.startswith(old)):
+                key = prefix + new + name[len(old):]
+                break
+        out[key] = value
+    return out
+
+
 class SceneModel(nn.Module, abc.ABC):
     """What the Lightning module needs from a scene representation.
 
@@ -73,6 +86,9 @@ class SceneModel(nn.Module, abc.ABC):
     """
 
     scene_extent: float = 1.0
+    # state-dict names of checkpoints written before the PrimitiveRows store: old -> new, a name
+    # ending in "." renames every key under it (see upgrade_state_keys)
+    LEGACY_STATE_KEYS: dict[str, str] = {}
 
     @abc.abstractmethod
     def add_points(self, xyz: torch.Tensor, rgb: torch.Tensor, kf_ids: torch.Tensor, optimizer) -> int:

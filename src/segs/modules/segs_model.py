@@ -13,73 +13,37 @@ import torch
 
 from segs.errors import ConfigError
 from segs.modules import losses
-from segs.modules.afme import KINDS, AppearanceEncoder
+from segs.modules.afme import AppearanceEncoder
 from segs.modules.anchors import AnchorField
-from segs.modules.densification import AnchorDensifier
+from segs.modules.config import SegsConfig
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
-from segs.modules.fpr import MODES, fpr_loss
+from segs.modules.fpr import fpr_loss
 from segs.modules.geometry import apply_similarity, split_similarity
 from segs.modules.optim import LrSchedule
 from segs.modules.scene_model import Decoded, SceneModel, View
 from segs.modules.sepm import initial_log_scales, voxelize
 
-_LR_DEFAULTS = {
-    "offsets": 0.01, "offsets_final": 1e-4, "features": 0.0075, "scales": 0.005,
-    "mlp_opacity": 0.002, "mlp_opacity_final": 2e-5, "mlp_cov": 0.004, "mlp_cov_final": 0.004,
-    "mlp_color": 0.008, "mlp_color_final": 5e-5, "appearance": 0.05, "appearance_final": 5e-4,
-}  # fmt: skip
-
-
-def _check(name: str, ok: bool, value, expected: str) -> None:
-    if not ok:
-        raise ConfigError(f"model.{name}={value!r} is out of range: expected {expected}")
-
 
 class SegsModel(SceneModel):
     """SEGS-SLAM's photorealistic map (see the module docstring for the parts)."""
 
-    def __init__(self, k: int = 10, feature_dim: int = 32, hidden: int = 32, use_distance: bool = False,
-                 voxel_size: float = 0.001, min_new_points: int = 10, max_anchors: int = 200_000,
-                 appearance: dict | None = None, fpr: dict | None = None, loss: dict | None = None,
-                 densify: dict | None = None, lr: dict | None = None, reference_steps: int = 30000,
-                 total_steps: int = 30000, frustum_margin: float = 0.15, budget_mb: float | None = None):  # fmt: skip
+    LEGACY_STATE_KEYS = {"field.params.params.": "field.rows.", "field.xyz": "field.rows.xyz", "densifier.": "field.rows.",
+                         "kf_tags": "field.rows.kf_tag"}  # fmt: skip
+
+    def __init__(self, cfg: SegsConfig):
         super().__init__()
-        app = {"kind": "linear", "dim": 32, "hidden": 32, **dict(appearance or {})}
-        self.fpr = {"enabled": True, "scales": 3, "mode": "high", "hp_ratio": 0.4, "lp_ratio": 0.1, "from_step": 5000, "until_step": 15000, **dict(fpr or {})}
-        self.loss_w = {"lambda_dssim": 0.2, "lambda_vol": 0.01, "lambda_hf": 0.01, **dict(loss or {})}
-        self.dcfg = {"stats_from": 500, "grow_from": 1500, "until": 25000, "interval": 100, "scale_interval": False, **dict(densify or {})}
-        self.lr = {**_LR_DEFAULTS, **dict(lr or {})}
-        self._validate(k, feature_dim, hidden, voxel_size, max_anchors, app, reference_steps, total_steps)
-        self.scale = total_steps / reference_steps
-        self.total_steps, self.voxel_size, self.min_new_points = total_steps, voxel_size, min_new_points
-        a_dim = 0 if app["kind"] == "none" else int(app["dim"])
-        self.field = AnchorField(k, feature_dim, hidden, a_dim, use_distance, frustum_margin)
-        self.appearance = AppearanceEncoder(app["kind"], int(app["dim"]), int(app["hidden"]), int(app.get("max_views", 4096)))
-        grow = {k_: v for k_, v in self.dcfg.items() if k_ not in ("stats_from", "grow_from", "until", "interval", "scale_interval")}
-        self.densifier = AnchorDensifier(k, voxel_size, max_anchors=max_anchors, **grow)
-        if budget_mb is not None:
-            _check("budget_mb", budget_mb > 0, budget_mb, "> 0 (MB) or null")
-            self.densifier.max_anchors = min(max_anchors, self.anchors_for_budget(budget_mb))
-        self.register_buffer("kf_tags", torch.zeros(0, dtype=torch.int64))
+        self.fpr, self.loss_w, self.growth, self.lr = cfg.fpr, cfg.loss, cfg.densify, cfg.lr
+        self.scale = cfg.total_steps / cfg.reference_steps
+        self.total_steps, self.voxel_size, self.min_new_points = cfg.total_steps, cfg.voxel_size, cfg.min_new_points
+        app = cfg.appearance
+        a_dim = 0 if app.kind == "none" else app.dim
+        self.field = AnchorField(cfg.k, cfg.feature_dim, cfg.hidden, a_dim, cfg.use_distance, cfg.frustum_margin)
+        self.appearance = AppearanceEncoder(app.kind, app.dim, app.hidden, app.max_views)
+        self.max_anchors = cfg.max_anchors
+        if cfg.budget_mb is not None:
+            self.max_anchors = min(cfg.max_anchors, self.anchors_for_budget(cfg.budget_mb))
         self._pending: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.last_rendered = 0
-
-    def _validate(self, k, feature_dim, hidden, voxel_size, max_anchors, app, reference_steps, total_steps) -> None:
-        _check("k", isinstance(k, int) and k > 0, k, "an integer > 0")
-        _check("feature_dim", feature_dim > 0, feature_dim, "> 0")
-        _check("hidden", hidden > 0, hidden, "> 0")
-        _check("voxel_size", voxel_size > 0, voxel_size, "> 0 (metres)")
-        _check("max_anchors", max_anchors > 0, max_anchors, "> 0")
-        _check("appearance.kind", app["kind"] in KINDS, app["kind"], f"one of {KINDS}")
-        _check("appearance.dim", app["kind"] == "none" or int(app["dim"]) > 0, app["dim"], "> 0")
-        _check("fpr.mode", self.fpr["mode"] in MODES, self.fpr["mode"], f"one of {MODES}")
-        _check("fpr.scales", int(self.fpr["scales"]) >= 1, self.fpr["scales"], ">= 1")
-        _check("densify.interval", self.dcfg["interval"] > 0, self.dcfg["interval"], "> 0")
-        _check("reference_steps", reference_steps > 0 and total_steps > 0, reference_steps, "> 0")
-        for name, v in self.lr.items():
-            _check(f"lr.{name}", v >= 0, v, ">= 0")
-        for name, v in self.loss_w.items():
-            _check(f"loss.{name}", v >= 0, v, ">= 0")
 
     def anchors_for_budget(self, budget_mb: float) -> int:
         """Largest anchor count whose model (anchors + decoders + embedding) fits in budget_mb."""
@@ -95,9 +59,9 @@ class SegsModel(SceneModel):
 
     def _interval(self) -> int:
         """Steps between grow / prune rounds: the reference's 100 views of statistics, or scaled."""
-        if self.dcfg["scale_interval"]:
-            return max(self._at(self.dcfg["interval"]), 1)
-        return int(self.dcfg["interval"])
+        if self.growth.scale_interval:
+            return max(self._at(self.growth.interval), 1)
+        return int(self.growth.interval)
 
     def _at(self, step_ref: float) -> int:
         """A reference-run iteration number in this run's steps."""
@@ -107,38 +71,36 @@ class SegsModel(SceneModel):
     def add_points(self, xyz, rgb, kf_ids, optimizer) -> int:
         """SEPM: voxelize new points, drop voxels that hold an anchor, append the rest."""
         if xyz.shape[0]:
-            self._pending.append((xyz.float(), kf_ids.to(torch.int64)))
+            self._pending.append((xyz.to(self.field.xyz), kf_ids.to(torch.int64)))
         if sum(p.shape[0] for p, _ in self._pending) < self.min_new_points and len(self.field):
             return 0
         pts = torch.cat([p for p, _ in self._pending]) if self._pending else xyz.new_zeros((0, 3))
         tags = torch.cat([t for _, t in self._pending]) if self._pending else kf_ids.new_zeros(0)
         self._pending = []
         centres, cell = voxelize(pts, self.voxel_size, existing=self.field.xyz)
-        m = min(centres.shape[0], max(self.densifier.max_anchors - len(self.field), 0))  # anchor cap
+        m = min(centres.shape[0], max(self.max_anchors - len(self.field), 0))  # anchor cap
         if m == 0:
             return 0
         centres, ok = centres[:m], (cell >= 0) & (cell < m)
         new_tags = torch.zeros(m, dtype=torch.int64, device=pts.device).scatter_(0, cell[ok], tags[ok])
-        feats = torch.zeros(m, self.field.feature_dim, device=pts.device)
-        self.field.add(centres, feats, initial_log_scales(centres, self.field.xyz), optimizer)
-        self.densifier.extend(m)
-        self.kf_tags = torch.cat([self.kf_tags, new_tags])
-        return m
+        feats = pts.new_zeros(m, self.field.feature_dim)
+        return self.field.add(centres, feats, initial_log_scales(centres, self.field.xyz), new_tags, optimizer)
 
     def correct_map(self, transforms, optimizer) -> int:
         """Move the anchors created from each corrected keyframe's points (positions, scales, offsets)."""
         moved = 0
         for kf_id, T in transforms.items():
-            mask = self.kf_tags == int(kf_id)
+            mask = self.field.rows.kf_tag == int(kf_id)
             if not bool(mask.any()):
                 continue
-            R, _, s = split_similarity(T.float())
+            T = T.to(self.field.xyz)
+            R, _, s = split_similarity(T)
             with torch.no_grad():
-                self.field.xyz[mask] = apply_similarity(T.float(), self.field.xyz[mask])
-                ls = self.field.params["log_scales"]
+                self.field.xyz[mask] = apply_similarity(T, self.field.xyz[mask])
+                ls = self.field.rows.log_scales
                 old = torch.exp(ls[mask][:, :3])
                 ls[mask] += math.log(s)
-                off = self.field.params["offsets"]
+                off = self.field.rows.offsets
                 world = off[mask] * old[:, None, :]  # [M,k,3] offset vectors in world units
                 off[mask] = (s * world @ R.T) / (old[:, None, :] * s)
             moved += int(mask.sum())
@@ -151,21 +113,19 @@ class SegsModel(SceneModel):
     # -- optimisation ---------------------------------------------------------------------------
     def param_groups(self) -> list[dict]:
         lr = self.lr
-        groups = self.field.params.groups(
-            {"features": lr["features"], "offsets": lr["offsets"] * self.scene_extent, "log_scales": lr["scales"]}
-        )
+        groups = self.field.rows.groups({"features": lr.features, "offsets": lr.offsets * self.scene_extent, "log_scales": lr.scales})
         for name, params in self.field.decoder_groups().items():
-            groups.append({"name": name, "params": params, "lr": lr[name]})
+            groups.append({"name": name, "params": params, "lr": getattr(lr, name)})
         app = list(self.appearance.parameters())
         if app:
-            groups.append({"name": "appearance", "params": app, "lr": lr["appearance"]})
+            groups.append({"name": "appearance", "params": app, "lr": lr.appearance})
         return groups
 
     def lr_schedules(self) -> dict[str, LrSchedule]:
         lr, n = self.lr, self.total_steps
-        out = {"anchor.offsets": LrSchedule(lr["offsets"] * self.scene_extent, lr["offsets_final"] * self.scene_extent, n)}
+        out = {"anchor.offsets": LrSchedule(lr.offsets * self.scene_extent, lr.offsets_final * self.scene_extent, n)}
         for name in ("mlp_opacity", "mlp_cov", "mlp_color", "appearance"):
-            out[name] = LrSchedule(lr[name], lr[f"{name}_final"], n)
+            out[name] = LrSchedule(getattr(lr, name), getattr(lr, f"{name}_final"), n)
         return out
 
     def _on_device(self, view: View) -> View:
@@ -184,31 +144,29 @@ class SegsModel(SceneModel):
 
     def fpr_active(self, step: int) -> bool:
         f = self.fpr
-        return bool(f["enabled"]) and self._at(f["from_step"]) < step < self._at(f["until_step"])
+        return f.enabled and self._at(f.from_step) < step < self._at(f.until_step)
 
     def loss(self, render, gt, decoded, step, gt_depth=None) -> dict:
-        w = self.loss_w
-        terms = losses.photometric(render.image, gt, w["lambda_dssim"])
+        w, f = self.loss_w, self.fpr
+        terms = losses.photometric(render.image, gt, w.lambda_dssim)
         terms["volume"] = losses.volume(decoded.scales)
-        total = terms["photometric"] + w["lambda_vol"] * terms["volume"]
-        if self.fpr_active(step) and w["lambda_hf"] > 0:
-            f = self.fpr
-            terms["fpr"] = fpr_loss(render.image, gt, int(f["scales"]), f["mode"], f["hp_ratio"], f["lp_ratio"])
-            total = total + w["lambda_hf"] * terms["fpr"]
+        total = terms["photometric"] + w.lambda_vol * terms["volume"]
+        if self.fpr_active(step) and f.weight > 0:
+            terms["fpr"] = fpr_loss(render.image, gt, f.scales, f.mode, f.hp_ratio, f.lp_ratio)
+            total = total + f.weight * terms["fpr"]
         terms["total"] = total
         return terms
 
     def after_backward(self, decoded, render, step) -> None:
-        if self._at(self.dcfg["stats_from"]) <= step < self._at(self.dcfg["until"]):
+        if self._at(self.growth.stats_from) <= step < self._at(self.growth.until):
             h, w = render.image.shape[:2]
-            self.densifier.record(decoded.aux["info"], render.means2d.grad, render.radii, w, h)
+            self.growth.record(self.field, decoded.aux["info"], render.means2d.grad, render.radii, w, h)
 
     def maintain(self, step, optimizer) -> dict[str, float]:
         interval = self._interval()
-        if not (self._at(self.dcfg["grow_from"]) < step < self._at(self.dcfg["until"])) or step % interval:
+        if not (self._at(self.growth.grow_from) < step < self._at(self.growth.until)) or step % interval:
             return {}
-        out, self.kf_tags = self.densifier.adjust(self.field, self.kf_tags, interval, optimizer)
-        return out
+        return self.growth.adjust(self.field, optimizer, interval, self.voxel_size, self.max_anchors)
 
     # -- bookkeeping ----------------------------------------------------------------------------
     @torch.no_grad()
@@ -222,12 +180,7 @@ class SegsModel(SceneModel):
                 "params": n_params, "mb": (n_params + self.field.xyz.numel()) * 4 / 1e6}  # fmt: skip
 
     def resize_for_state(self, state_dict) -> None:
-        n = state_dict["field.params.params.features"].shape[0]
-        self.field.params.resize_(n)
-        dev = self.field.xyz.device
-        self.field.xyz = torch.zeros(n, 3, device=dev)
-        self.densifier.resize_(n)
-        self.kf_tags = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.field.rows.resize(state_dict["field.rows.features"].shape[0])
         if "appearance.centers" in state_dict:
             self.appearance.centers = torch.zeros_like(state_dict["appearance.centers"])
             self.appearance.center_ids = torch.zeros_like(state_dict["appearance.center_ids"])

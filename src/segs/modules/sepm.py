@@ -26,7 +26,7 @@ def _hash(keys: torch.Tensor) -> torch.Tensor:
 def voxelize(points: torch.Tensor, eps: float, existing: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Voxel centres of points [M,3] not already occupied by `existing` [N,3] anchors.
 
-    Returns (centres [V,3] float32, index [M] long: the output row of each input point, -1 for
+    Returns (centres [V,3] in points' dtype, index [M] long: the output row of each input point, -1 for
     points whose voxel already held an anchor).
     """
     if eps <= 0:
@@ -43,7 +43,7 @@ def voxelize(points: torch.Tensor, eps: float, existing: torch.Tensor | None = N
         new = ~torch.isin(uniq, _hash(voxel_keys(existing, eps)))
     remap = torch.full((uniq.shape[0],), -1, dtype=torch.long, device=points.device)
     remap[new] = torch.arange(int(new.sum()), device=points.device)
-    return (cells[new].double() * eps).float(), remap[inverse]
+    return (cells[new].double() * eps).to(points.dtype), remap[inverse]
 
 
 def initial_log_scales(new: torch.Tensor, existing: torch.Tensor, k: int = 3) -> torch.Tensor:

@@ -1,7 +1,9 @@
-"""The Lightning module of photorealistic mapping: one Adam, manual optimisation, keyframe views.
+"""The Gaussian mapper: the Lightning module that trains the photorealistic map (one Adam,
+manual optimisation) on the training views pushed by the SLAM bridge.
 
-Its bridge interface (called by segs.callbacks.SlamBridge, never by the SLAM code itself):
-add_keyframes, update_poses, add_points, correct_map.
+It implements segs.modules.contract.GaussianMapper, the only part of it the bridge, the
+evaluation and the callbacks use: add_keyframes, update_poses, add_points, correct_map, counts,
+first_view, render_image, count_active, export_ply.
 """
 from __future__ import annotations
 
@@ -13,48 +15,51 @@ import lightning as L
 import numpy as np
 import torch
 
-from segs.modules.keyframes import Keyframe, KeyframeStore
+from segs.modules.config import MappingConfig, RasterConfig
+from segs.modules.contract import MapCounts, TrainingView
 from segs.modules.metrics import psnr
 from segs.modules.optim import make_adam, set_learning_rates
-from segs.modules.scene_model import SceneModel, View
+from segs.modules.scene_model import SceneModel, View, upgrade_state_keys
+from segs.modules.training_views import TrainingViews
 from segs.raster import rasterize
 
 log = logging.getLogger(__name__)
 
 
-class MappingModule(L.LightningModule):
-    """Trains a SceneModel on keyframes pushed by the SLAM bridge.
+class GaussianMapperModule(L.LightningModule):
+    """Trains a SceneModel (SEGS anchors or plain 3D-GS) on the training views of the bridge.
 
-    raster: {"backend", "near", "far", "background": [3]}; view_budget: uses per keyframe before
-    every keyframe gets one more (reference: 2 for TUM/EuRoC, 8 for Replica).
+    mapping.view_budget: uses per keyframe before every keyframe gets one more (reference: 2 for
+    TUM/EuRoC, 8 for Replica); seed: the view sampler's.
     """
 
-    def __init__(self, model: SceneModel, raster: dict | None = None, view_budget: int = 2, seed: int = 0,
-                 min_scene_extent: float = 0.5, adam_eps: float = 1e-15):  # fmt: skip
+    def __init__(self, model: SceneModel, mapping: MappingConfig, raster: RasterConfig, seed: int):
         super().__init__()
         self.automatic_optimization = False
         self.model = model
-        self.raster = {"backend": "auto", "near": 0.01, "far": 100.0, "background": [0.0, 0.0, 0.0], **dict(raster or {})}
-        self.store = KeyframeStore(view_budget, seed)
-        self.min_scene_extent = min_scene_extent
-        self.adam_eps = adam_eps
+        self.raster = raster
+        self.views = TrainingViews(mapping.view_budget, seed)
+        self.min_scene_extent = mapping.min_scene_extent
+        self.adam_eps = mapping.adam_eps
         self.iteration_ms: list[float] = []
         self.loss_history: list[float] = []
 
-    # -- bridge interface -----------------------------------------------------------------------
-    def add_keyframes(self, keyframes: list[Keyframe]) -> None:
-        """New training views (image [H,W,3] uint8, w2c [4,4])."""
-        for kf in keyframes:
-            self.store.add(kf)
-        self.model.register_views({kf.kf_id: kf.w2c for kf in keyframes})
+    # -- the bridge contract (segs.modules.contract.GaussianMapper) -----------------------------
+    def add_keyframes(self, views: list[TrainingView]) -> None:
+        """New training views (image [H,W,3] uint8, w2c [4,4] float32)."""
+        for view in views:
+            self.views.add(view)
+        self.model.register_views({v.kf_id: v.w2c for v in views})
         self._update_extent()
 
     def update_poses(self, poses: dict[int, torch.Tensor]) -> None:
-        """Refreshed world-to-camera poses [4,4] by kf_id (unknown ids are ignored)."""
-        for kf_id, w2c in poses.items():
-            self.store.update_pose(int(kf_id), torch.as_tensor(w2c, dtype=torch.float32))
-        self.model.register_views({k: self.store[k].w2c for k in map(int, poses) if k in self.store})
-        self._update_extent()
+        """Refreshed world-to-camera poses [4,4] float32 by kf_id (unknown ids are ignored)."""
+        known = {int(k): w2c for k, w2c in poses.items() if int(k) in self.views}
+        for kf_id, w2c in known.items():
+            self.views.update_pose(kf_id, w2c)
+        if known:
+            self.model.register_views(known)
+            self._update_extent()
 
     def add_points(self, xyz: torch.Tensor, rgb: torch.Tensor, kf_ids: torch.Tensor) -> int:
         """New SLAM map points xyz [M,3], colours [M,3] in [0,1], creating kf ids [M]."""
@@ -62,7 +67,26 @@ class MappingModule(L.LightningModule):
 
     def correct_map(self, transforms: dict[int, torch.Tensor]) -> int:
         """Loop closure: move what each kf_id created by a world-to-world similarity [4,4]."""
-        return self.model.correct_map({k: torch.as_tensor(v, dtype=torch.float32) for k, v in transforms.items()}, self._optimizer())
+        return self.model.correct_map(transforms, self._optimizer())
+
+    def counts(self) -> MapCounts:
+        c = self.model.counts()
+        return MapCounts(len(self.views), int(c["anchors"]), int(c["gaussians"]), int(c["params"]), float(c["mb"]))
+
+    def first_view(self) -> TrainingView | None:
+        return self.views.first()
+
+    @torch.no_grad()
+    def count_active(self, w2c: np.ndarray | torch.Tensor, camera, threshold: float) -> int:
+        """Gaussians of the view at w2c [4,4] whose opacity exceeds threshold."""
+        return self.model.count_active(View(torch.as_tensor(w2c, dtype=torch.float32), camera), threshold)
+
+    def export_ply(self, path) -> int:
+        """The map as a 3D-GS PLY, decoded with the first training view's direction and appearance."""
+        first = self.views.first()
+        if first is None:
+            return 0
+        return self.model.export_ply(path, View(first.w2c, first.camera, first.kf_id))
 
     # -- helpers --------------------------------------------------------------------------------
     def _optimizer(self):
@@ -72,20 +96,21 @@ class MappingModule(L.LightningModule):
             return None
 
     def _update_extent(self) -> None:
-        if len(self.store) == 0:
+        if len(self.views) == 0:
             return
-        centers = torch.stack([View(k.w2c, k.camera).center for k in self.store.frames.values()])
+        centers = torch.stack([View(v.w2c, v.camera).center for v in self.views.frames.values()])
         radius = (centers - centers.mean(0)).norm(dim=-1).max()
         self.model.scene_extent = max(float(radius) * 1.1, self.min_scene_extent)
 
     def render(self, view: View, step: int | None = None):
         """Decode and rasterize one view; returns (rasterizer output, Decoded)."""
         decoded = self.model.decode(view, self.global_step if step is None else step)
-        bg = torch.tensor(self.raster["background"], dtype=torch.float32, device=self.device)
+        r = self.raster
+        bg = torch.tensor(r.background, dtype=torch.float32, device=self.device)
         out = rasterize(
             decoded.means, decoded.quats, decoded.scales, decoded.opacities, decoded.colors,
             view.w2c.to(self.device), view.K.to(self.device), view.camera.width, view.camera.height,
-            background=bg, near=self.raster["near"], far=self.raster["far"], backend=self.raster["backend"],
+            background=bg, near=r.near, far=r.far, backend=r.backend,
         )  # fmt: skip
         return out, decoded
 
@@ -104,7 +129,7 @@ class MappingModule(L.LightningModule):
         t0 = time.perf_counter()
         opt = self.optimizers(use_pl_optimizer=False)
         step = self.global_step
-        kf = self.store.sample()
+        kf = self.views.sample()
         view = View(kf.w2c.to(self.device), kf.camera, kf.kf_id)
         gt = kf.rgb().to(self.device)
         out, decoded = self.render(view, step)
@@ -130,24 +155,26 @@ class MappingModule(L.LightningModule):
         metrics["train/psnr"] = psnr(image, gt)
         metrics["train/iteration_ms"] = self.iteration_ms[-1]
         metrics["model/anchors"] = float(counts["anchors"])
-        metrics["model/keyframes"] = float(len(self.store))
+        metrics["model/keyframes"] = float(len(self.views))
         metrics.update({f"densify/{k}": float(v) for k, v in edits.items()})
         self.log_dict(metrics, on_step=True, on_epoch=False)
 
     # -- checkpoints ----------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["segs"] = {
-            "store": self.store.state_dict(),
+            "store": self.views.state_dict(),
             "scene_extent": self.model.scene_extent,
             "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # checkpoints of the layout before the PrimitiveRows store load under the new names
+        checkpoint["state_dict"] = upgrade_state_keys(checkpoint["state_dict"], self.model.LEGACY_STATE_KEYS, "model.")
         sd = {k.removeprefix("model."): v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
         self.model.resize_for_state(sd)
         extra = checkpoint.get("segs", {})
         if "store" in extra:
-            self.store.load_state_dict(extra["store"])
+            self.views.load_state_dict(extra["store"])
         self.model.scene_extent = extra.get("scene_extent", self.model.scene_extent)
         if "rng" in extra:
             torch.set_rng_state(extra["rng"]["torch"])

@@ -1,39 +1,13 @@
-"""Training views of the mapper: keyframes with images and refreshable poses, and view sampling."""
+"""Training views of the mapper (segs.modules.contract.TrainingView: keyframe images with
+refreshable poses), kept by kf_id, and the order in which training draws them."""
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
 
 import torch
 
 from segs.data.frame import Camera
-
-
-@dataclass
-class Keyframe:
-    """One training view.
-
-    image: [H,W,3] uint8 (kept compact; `rgb()` gives float [H,W,3] in [0,1])
-    depth: [H,W] float32 metres (0 = invalid) or None
-    w2c:   [4,4] float32 world-to-camera pose (refreshed by the frontend)
-    """
-
-    kf_id: int
-    frame_index: int
-    timestamp: float
-    image: torch.Tensor
-    w2c: torch.Tensor
-    camera: Camera
-    depth: torch.Tensor | None = None
-
-    def rgb(self) -> torch.Tensor:
-        """[H,W,3] float32 in [0,1]."""
-        return self.image.float() / 255.0
-
-
-def to_uint8(rgb: torch.Tensor) -> torch.Tensor:
-    """[H,W,3] float in [0,1] -> uint8."""
-    return (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
+from segs.modules.contract import TrainingView
 
 
 class ViewSampler:
@@ -52,9 +26,6 @@ class ViewSampler:
 
     def add(self, kf_id: int) -> None:
         self.remaining.setdefault(kf_id, self.budget)
-
-    def remove(self, kf_id: int) -> None:
-        self.remaining.pop(kf_id, None)
 
     def next(self) -> int:
         if not self.remaining:
@@ -77,11 +48,11 @@ class ViewSampler:
         self.rng.setstate(state["rng"])
 
 
-class KeyframeStore:
-    """Keyframes by kf_id, in arrival order, with the view sampler."""
+class TrainingViews:
+    """Training views by kf_id, in arrival order, with the view sampler."""
 
     def __init__(self, budget: int = 2, seed: int = 0):
-        self.frames: dict[int, Keyframe] = {}
+        self.frames: dict[int, TrainingView] = {}
         self.sampler = ViewSampler(budget, seed)
 
     def __len__(self) -> int:
@@ -90,18 +61,23 @@ class KeyframeStore:
     def __contains__(self, kf_id: int) -> bool:
         return kf_id in self.frames
 
-    def __getitem__(self, kf_id: int) -> Keyframe:
+    def __getitem__(self, kf_id: int) -> TrainingView:
         return self.frames[kf_id]
 
-    def add(self, kf: Keyframe) -> None:
+    def add(self, kf: TrainingView) -> None:
         self.frames[kf.kf_id] = kf
         self.sampler.add(kf.kf_id)
 
     def update_pose(self, kf_id: int, w2c: torch.Tensor) -> None:
+        """w2c [4,4] float32 (as the bridge made it); unknown kf_ids are ignored."""
         if kf_id in self.frames:
-            self.frames[kf_id].w2c = w2c.detach().to(torch.float32).clone()
+            self.frames[kf_id].w2c = w2c
 
-    def sample(self) -> Keyframe:
+    def first(self) -> TrainingView | None:
+        """The view of the lowest kf_id, None when there is none."""
+        return self.frames[min(self.frames)] if self.frames else None
+
+    def sample(self) -> TrainingView:
         return self.frames[self.sampler.next()]
 
     def state_dict(self) -> dict:
@@ -122,6 +98,6 @@ class KeyframeStore:
     def load_state_dict(self, state: dict) -> None:
         self.frames = {}
         for f in state["frames"]:
-            kf = Keyframe(**{**f, "camera": Camera(**f["camera"])})
+            kf = TrainingView(**{**f, "camera": Camera(**f["camera"])})
             self.frames[kf.kf_id] = kf
         self.sampler.load_state_dict(state["sampler"])

@@ -1,0 +1,91 @@
+"""The bridge contract: what the SLAM bridge, the evaluation and the callbacks may use of the
+mapper (the `GaussianMapper` protocol), and the records that cross it.
+
+Poses are world-to-camera [4,4] float32 tensors (gsplat's viewmat); the bridge converts the
+frontend's numpy poses once, the mapper stores them as given.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from segs.data.frame import Camera
+
+
+@dataclass
+class TrainingView:
+    """One training view of the mapper: the image of a SLAM keyframe (kf_id) and its refreshed pose.
+
+    image: [H,W,3] uint8 (kept compact; `rgb()` gives float [H,W,3] in [0,1])
+    depth: [H,W] float32 metres (0 = invalid) or None
+    w2c:   [4,4] float32 world-to-camera pose (refreshed by the frontend)
+    """
+
+    kf_id: int
+    frame_index: int
+    timestamp: float
+    image: torch.Tensor
+    w2c: torch.Tensor
+    camera: Camera
+    depth: torch.Tensor | None = None
+
+    def rgb(self) -> torch.Tensor:
+        """[H,W,3] float32 in [0,1]."""
+        return self.image.float() / 255.0
+
+
+def to_uint8(rgb: torch.Tensor) -> torch.Tensor:
+    """[H,W,3] float in [0,1] -> uint8."""
+    return (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
+
+
+@dataclass
+class MapCounts:
+    """Size of the map: training views, anchors (0 for plain 3D-GS), Gaussians (anchors * k for
+    SEGS), optimised parameters and the model's size in MB."""
+
+    training_views: int
+    anchors: int
+    gaussians: int
+    params: int
+    mb: float
+
+
+@runtime_checkable
+class GaussianMapper(Protocol):
+    """The mapper as the bridge, the evaluation and the callbacks see it."""
+
+    iteration_ms: list[float]  # wall time of every training step so far (resumed runs included)
+
+    def add_keyframes(self, views: list[TrainingView]) -> None:
+        """New training views (their poses are registered here, once)."""
+
+    def update_poses(self, poses: dict[int, torch.Tensor]) -> None:
+        """Refreshed w2c [4,4] float32 by kf_id (ids without a training view are ignored)."""
+
+    def add_points(self, xyz: torch.Tensor, rgb: torch.Tensor, kf_ids: torch.Tensor) -> int:
+        """New SLAM points xyz [M,3], colours [M,3] in [0,1], creating kf ids [M] int64; returns
+        the primitives added."""
+
+    def correct_map(self, transforms: dict[int, torch.Tensor]) -> int:
+        """Loop closure: move what each kf_id created by a world-to-world similarity [4,4]."""
+
+    def counts(self) -> MapCounts:
+        """The map's size now."""
+
+    def first_view(self) -> TrainingView | None:
+        """The training view of the lowest kf_id (None before the first)."""
+
+    def render_image(self, w2c: np.ndarray | torch.Tensor, camera: Camera, kf_id: int | None = None) -> dict:
+        """{"image" [H,W,3], "depth" [H,W], "alpha" [H,W]} on the CPU, rendered at w2c [4,4]."""
+
+    def count_active(self, w2c: np.ndarray | torch.Tensor, camera: Camera, threshold: float) -> int:
+        """Gaussians of the view at w2c whose opacity exceeds threshold (compactness)."""
+
+    def export_ply(self, path: str | Path) -> int:
+        """Write the Gaussians (decoded with the first view's direction) as a 3D-GS PLY; returns
+        their count (0 and no file without a training view)."""
