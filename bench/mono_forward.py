@@ -42,8 +42,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from segs.data.synthetic import SyntheticSequence
 from segs.data.seven_scenes import SevenScenesSequence
+from segs.data.synthetic import SyntheticSequence
 from segs.slam.config import FeatureConfig
 from segs.slam.features import OrbExtractor, to_gray
 from segs.slam.matching import match_descriptors
