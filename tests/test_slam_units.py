@@ -197,3 +197,31 @@ def test_threaded_mode_and_checkpoint_round_trip():
     run = run_sequence(single, seq, frames=range(12, 24))
     assert single.lost_frames() == [] and sorted(single.trajectory()) == list(range(24))
     assert all(r.tracked for r in run.results)
+
+
+def test_tracking_state_enum_round_trips_checkpoint():
+    """The tracker state is a TrackingState after a checkpoint round trip, and a checkpoint written
+    before the Enum (plain "ok" string, configs without the named thresholds) loads and tracks on."""
+    import pickle
+
+    from segs.slam.tracking import TrackingState
+
+    seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
+    fe = OrbFrontend(seq.camera, "rgbd")
+    run_sequence(fe, seq, frames=range(6))
+    assert fe.tracker.state is TrackingState.OK
+    state = fe.state_dict()
+    new = OrbFrontend(seq.camera, "rgbd")
+    new.load_state_dict(state)
+    assert new.tracker.state is TrackingState.OK
+    old = pickle.loads(state["blob"])
+    old["tracker"].state = "ok"
+    for name in ("min_pose_inliers", "min_matches_ref", "local_map_ratio", "kf_min_tracked"):
+        old["tracker"].cfg.__dict__.pop(name)
+    old_fe = OrbFrontend(seq.camera, "rgbd")
+    old_fe.load_state_dict({"format": "segs.orb.v1", "blob": pickle.dumps(old)})
+    assert old_fe.tracker.state is TrackingState.OK
+    assert old_fe.tracker.cfg.min_pose_inliers == 10
+    run = run_sequence(old_fe, seq, frames=range(6, 12))
+    assert old_fe.tracker.state is TrackingState.OK
+    assert len(old_fe.lost_frames()) == 0, run

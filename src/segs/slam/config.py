@@ -34,6 +34,12 @@ class TrackingConfig:
     min_matches_motion: int = 20
     min_inliers: int = 30  # local-map inliers to call a frame tracked
     min_inliers_reloc: int = 50  # idem, during the frames after a relocalization
+    reloc_recent_frames: int = 30  # frames after a relocalization that need min_inliers_reloc
+    local_map_ratio: float = 0.8  # nearest / second-nearest descriptor ratio of local-map projection
+    ref_match_ratio: float = 0.7  # descriptor ratio matching the reference keyframe (ORB-SLAM: 0.7)
+    pnp_match_ratio: float = 0.9  # looser ratio of the matches fed to PnP RANSAC (fallback, relocalization)
+    min_matches_ref: int = 15  # matches with the reference keyframe needed to try its pose (ORB-SLAM: 15)
+    min_pose_inliers: int = 10  # inliers of a motion / reference / PnP pose to accept it (ORB-SLAM: 10)
     kf_max_gap: int = 15  # a keyframe at least every N frames (if c2 holds); authors: 15
     kf_min_gap: int = 3  # ratio-rule keyframes not sooner than this (paces single-thread mode)
     kf_min_gap_mono: int = 0  # idem, monocular (its keyframes are its only source of new points)
@@ -41,6 +47,8 @@ class TrackingConfig:
     kf_ref_ratio_mono: float = 0.9
     kf_weak_mono: int = 100  # monocular: a keyframe whenever fewer points are tracked (ORB-SLAM3 c4: 75)
     kf_track_ratio: float = 0.5  # ... or below this share of the best count since the last keyframe
+    kf_ref_ratio_weak: float = 0.25  # stereo / RGB-D: a keyframe is needed below this x the reference's (c1c)
+    kf_min_tracked: int = 15  # no keyframe from a frame with this many tracked points or fewer (c2, c4)
     kf_close_tracked: int = 100  # stereo / RGB-D: need close points if fewer tracked ...
     kf_close_untracked: int = 70  # ... and more than this untracked
     rgbd_new_points: str = "all"  # "all": every unmatched keypoint with depth; "close": < ThDepth
@@ -65,6 +73,7 @@ class MappingConfig:
     triangulate_neighbors: int = 10  # covisible keyframes to triangulate with (mono: x2)
     fuse_neighbors: int = 10
     triangulate_ratio: float = 0.6
+    scale_consistency: float = 1.5  # distance ratio vs octave ratio within this x scale_factor (ratioFactor)
     min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
     ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
@@ -84,6 +93,7 @@ class LoopConfig:
     min_kfs: int = 10  # keyframes in the map before loops are searched
     consistency: int = 3  # consecutive consistent detections
     min_matches: int = 20  # descriptor matches with a candidate
+    match_ratio: float = 0.75  # their nearest / second-nearest descriptor ratio
     min_inliers: int = 20  # RANSAC inliers of the similarity
     min_total: int = 40  # matches after guided search to accept the loop
     covis_edges: int = 100  # essential graph: covisibility edges with this weight
@@ -91,6 +101,7 @@ class LoopConfig:
     global_ba: bool = True
     global_ba_iterations: int = 10
     min_gap_kfs: int = 10  # a loop partner must be this many keyframes older
+    min_kfs_since_loop: int = 10  # keyframes after a closed loop before the next search
 
 
 GROUPS = {"features": FeatureConfig, "tracking": TrackingConfig, "init": InitConfig,

@@ -113,7 +113,7 @@ class LocalMapper:
         nn = self.cfg.triangulate_neighbors * (2 if mono else 1)
         K, bf = sysm.K, sysm.bf
         base_stereo = bf / K[0, 0]
-        ratio_factor = 1.5 * sysm.scale_factor
+        ratio_factor = self.cfg.scale_consistency * sysm.scale_factor
         P1 = K @ kf.w2c[:3]
         C1 = kf.center
         partners = []

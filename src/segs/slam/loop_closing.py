@@ -82,7 +82,7 @@ class LoopCloser:
     # ------------------------------------------------------------------ detection
     def _detect(self, kf: KeyFrame) -> list[int]:
         m, sysm = self.sys.map, self.sys
-        if len(m.kfs) < self.cfg.min_kfs or kf.kf_id - self.last_loop_kf < 10:
+        if len(m.kfs) < self.cfg.min_kfs or kf.kf_id - self.last_loop_kf < self.cfg.min_kfs_since_loop:
             return []
         bow = sysm.kfdb.bows.get(kf.kf_id)
         if bow is None:
@@ -120,7 +120,7 @@ class LoopCloser:
     def _verify(self, kf: KeyFrame, cand: KeyFrame):
         """-> (loop kf, Scw [4,4] corrected similarity w2c of kf, matches {kf kp idx: loop pid}) or None."""
         m, sysm = self.sys.map, self.sys
-        fi, pids = match_frame_to_kf(kf, cand, m.valid, ratio=0.75, max_dist=TH_LOW)
+        fi, pids = match_frame_to_kf(kf, cand, m.valid, ratio=self.cfg.match_ratio, max_dist=TH_LOW)
         if len(fi) < self.cfg.min_matches:
             return None
         X1, ok1 = self._kf_points(kf, fi)

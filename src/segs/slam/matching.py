@@ -13,6 +13,9 @@ from segs.slam.features import hamming_pairs
 
 TH_HIGH = 100
 TH_LOW = 50
+# chi-square 95 % quantile, 1 dof (a statistics constant, not a parameter): the epipolar-distance
+# test of triangulation matches
+CHI2_EPIPOLAR = 3.84
 
 
 def best_two(q: np.ndarray, k: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -127,7 +130,7 @@ def match_frame_to_kf(frame, kf, valid: np.ndarray, ratio: float = 0.75,
 
 
 def match_for_triangulation(kf1, kf2, F12: np.ndarray, sigma2: np.ndarray, ratio: float = 0.6,
-                            max_dist: int = TH_LOW, epi_chi2: float = 3.84) -> tuple[np.ndarray, np.ndarray]:
+                            max_dist: int = TH_LOW, epi_chi2: float = CHI2_EPIPOLAR) -> tuple[np.ndarray, np.ndarray]:
     """Unmatched keypoints of kf1 vs kf2 satisfying the epipolar constraint.
 
     F12 [3,3]: x2^T F12 x1 = 0. Returns (idx1 [K], idx2 [K]).

@@ -15,6 +15,8 @@ import numpy as np
 
 from segs.slam.geometry import inv_se3, orthonormalize, rt_to_w2c, transform
 
+# chi-square 95 % quantiles (statistics constants, not parameters): a reprojection error of 2 dof
+# (u, v) and of 3 dof (u, v, right u), ORB-SLAM's outlier thresholds
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
 

@@ -11,6 +11,7 @@ reference keyframe, close-point need for stereo / RGB-D).
 """
 from __future__ import annotations
 
+from enum import Enum
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,10 +21,19 @@ from segs.slam.geometry import cam_center, inv_se3, orthonormalize, project, tra
 from segs.slam.initialization import MonoInitializer
 from segs.slam.map import KeyFrame
 from segs.slam.matching import TH_HIGH, match_frame_to_kf, search_projection
-from segs.slam.optimize import pnp_ransac, refine_pose
+from segs.slam.optimize import CHI2_MONO, pnp_ransac, refine_pose
 
 if TYPE_CHECKING:
     from segs.slam.orb import OrbFrontend as SlamSystem
+
+
+class TrackingState(str, Enum):
+    """Tracker state (ORB-SLAM's eTrackingState); a str Enum, so checkpoints that pickled the
+    plain strings "init" / "ok" / "lost" still compare equal after loading."""
+
+    NOT_INITIALIZED = "init"  # no map yet (or a new map segment is to be started)
+    OK = "ok"  # the last frame was tracked
+    LOST = "lost"  # the last frame was lost; the next ones try relocalization
 
 
 class Tracker:
@@ -32,7 +42,7 @@ class Tracker:
     def __init__(self, system: "SlamSystem"):
         self.sys = system
         self.cfg = system.cfg.tracking
-        self.state = "init"
+        self.state = TrackingState.NOT_INITIALIZED
         self.last: SlamFrame | None = None
         self.velocity: np.ndarray | None = None
         self.ref_kf: int | None = None
@@ -53,15 +63,20 @@ class Tracker:
         state.pop("sys", None)
         return state
 
+    def __setstate__(self, state: dict) -> None:
+        """Checkpoints written before TrackingState hold the plain strings: read them as the Enum."""
+        state["state"] = TrackingState(state["state"])
+        self.__dict__.update(state)
+
     # ------------------------------------------------------------------ entry point
     def track(self, frame: SlamFrame) -> KeyFrame | None:
         """Sets frame.w2c (None when lost); returns a new keyframe if one was created."""
         m = self.sys.map
         with m.lock:
-            if self.state == "init":
+            if self.state == TrackingState.NOT_INITIALIZED:
                 return self._initialize(frame)
             ok = False
-            if self.state == "ok":
+            if self.state == TrackingState.OK:
                 if self.last is not None and self.last.index == frame.index - 1:
                     ok = self._track_motion(frame) and self._track_local_map(frame)
                 if not ok:  # the reference keyframe (descriptors, then PnP RANSAC), then the local map
@@ -72,9 +87,9 @@ class Tracker:
                 ok = self._relocalize(frame)
             if not ok:
                 return self._lost(frame)
-            if self.state != "ok":
+            if self.state != TrackingState.OK:
                 self.lost_since = None
-            self.state = "ok"
+            self.state = TrackingState.OK
             if self.last is not None and self.last.w2c is not None and frame.index - self.last.index == 1:
                 self.velocity = orthonormalize(frame.w2c @ inv_se3(self.last.w2c))
             else:
@@ -91,13 +106,13 @@ class Tracker:
     def _lost(self, frame: SlamFrame) -> None:
         frame.w2c = None
         self.velocity = None
-        if self.state == "ok":
+        if self.state == TrackingState.OK:
             self.lost_since = frame.index
-        self.state = "lost"
+        self.state = TrackingState.LOST
         n_lost = frame.index - (self.lost_since if self.lost_since is not None else frame.index)
         if self.cfg.restart_after_lost and n_lost >= self.cfg.restart_after_lost and self.sys.sensor != "mono":
             self.sys.log(f"frame {frame.index}: lost for {n_lost} frames, restarting at the last pose")
-            self.state = "init"
+            self.state = TrackingState.NOT_INITIALIZED
         return None
 
     # ------------------------------------------------------------------ initialization
@@ -180,7 +195,7 @@ class Tracker:
             self.last = f
 
     def _after_init(self, frame: SlamFrame, kf: KeyFrame) -> KeyFrame:
-        self.state = "ok"
+        self.state = TrackingState.OK
         self.lost_since = None
         self.velocity = None
         self.ref_kf = kf.kf_id
@@ -218,7 +233,7 @@ class Tracker:
         if n < self.cfg.min_matches_motion:
             frame.points[:] = -1
             return False
-        return self._optimize(frame) >= 10
+        return self._optimize(frame) >= self.cfg.min_pose_inliers
 
     def _search_last(self, frame: SlamFrame, th: float) -> int:
         m, last = self.sys.map, self.last
@@ -249,22 +264,23 @@ class Tracker:
         if ref is None or self.last is None:
             return False
         frame.points[:] = -1
-        fi, pids = match_frame_to_kf(frame, ref, m.valid, ratio=0.7, max_dist=TH_HIGH // 2)
-        if len(fi) >= 15:
+        cfg = self.cfg
+        fi, pids = match_frame_to_kf(frame, ref, m.valid, ratio=cfg.ref_match_ratio, max_dist=TH_HIGH // 2)
+        if len(fi) >= cfg.min_matches_ref:
             frame.points[fi] = pids
             frame.w2c = self.last.w2c.copy()
-            if self._optimize(frame) >= max(10, len(fi) // 2):
+            if self._optimize(frame) >= max(cfg.min_pose_inliers, len(fi) // 2):
                 return True
-        fi, pids = match_frame_to_kf(frame, ref, m.valid, ratio=0.9, max_dist=TH_HIGH // 2)
-        return len(fi) >= 15 and self._pnp(frame, fi, pids) >= 10
+        fi, pids = match_frame_to_kf(frame, ref, m.valid, ratio=cfg.pnp_match_ratio, max_dist=TH_HIGH // 2)
+        return len(fi) >= cfg.min_matches_ref and self._pnp(frame, fi, pids) >= cfg.min_pose_inliers
 
     def _pnp(self, frame: SlamFrame, fi: np.ndarray, pids: np.ndarray) -> int:
         """PnP RANSAC + refinement from the matches frame keypoints fi <-> points pids."""
         frame.points[:] = -1
         frame.outlier[:] = False
         w2c, inl = pnp_ransac(self.sys.map.pos[pids], frame.kp.uv[fi], self.sys.K,
-                              reproj=np.sqrt(5.991) * 2, seed=self.sys.seed + frame.index)
-        if w2c is None or inl.sum() < 10:
+                              reproj=np.sqrt(CHI2_MONO) * 2, seed=self.sys.seed + frame.index)
+        if w2c is None or inl.sum() < self.cfg.min_pose_inliers:
             return 0
         frame.points[fi[inl]] = pids[inl]
         frame.w2c = w2c
@@ -329,7 +345,7 @@ class Tracker:
         n = self._optimize(frame, warm=True)
         inl = frame.points[(frame.points >= 0) & ~frame.outlier]
         np.add.at(m.found, inl, 1)
-        recent = frame.index - self.last_reloc_frame < 30
+        recent = frame.index - self.last_reloc_frame < self.cfg.reloc_recent_frames
         need = self.cfg.min_inliers_reloc if recent else self.cfg.min_inliers
         return n >= need
 
@@ -363,7 +379,7 @@ class Tracker:
         radius = th * np.where(cos > 0.998, 2.5, 4.0) * self.sys.scales[level]
         ur = uv[:, 0] - self.sys.bf / pc[:, 2] if self.sys.sensor != "mono" else None
         q, k = search_projection(frame, uv, m.desc[pids], level, radius, level - 1, level, ur,
-                                 max_dist=TH_HIGH, ratio=0.8)
+                                 max_dist=TH_HIGH, ratio=self.cfg.local_map_ratio)
         frame.points[k] = pids[q]
         return len(q)
 
@@ -383,10 +399,10 @@ class Tracker:
             if kf is None:
                 continue
             frame.points[:] = -1
-            fi, pids = match_frame_to_kf(frame, kf, m.valid, ratio=0.9, max_dist=TH_HIGH // 2)
+            fi, pids = match_frame_to_kf(frame, kf, m.valid, ratio=self.cfg.pnp_match_ratio, max_dist=TH_HIGH // 2)
             if len(fi) < self.cfg.reloc_min_matches:
                 continue
-            if self._pnp(frame, fi, pids) < 10:
+            if self._pnp(frame, fi, pids) < self.cfg.min_pose_inliers:
                 continue
             frame.points[frame.outlier] = -1
             frame.outlier[:] = False
@@ -437,16 +453,16 @@ class Tracker:
         c1a = gap >= cfg.kf_max_gap
         min_gap = cfg.kf_min_gap_mono if sysm.sensor == "mono" else cfg.kf_min_gap
         c1b = gap >= min_gap and sysm.mapping_idle()
-        c1c = sysm.sensor != "mono" and (n_inl < 0.25 * n_ref or need_close)
+        c1c = sysm.sensor != "mono" and (n_inl < cfg.kf_ref_ratio_weak * n_ref or need_close)
         # coverage (ours): the tracked points fell below a share of the best count since the last
         # keyframe; like c1c a need (tracking is about to fail), so it ignores kf_min_gap
         self._max_inl = max(self._max_inl, n_inl)
         low_cover = n_inl < cfg.kf_track_ratio * self._max_inl
-        c2 = (n_inl < n_ref * ratio or need_close or low_cover) and n_inl > 15
+        c2 = (n_inl < n_ref * ratio or need_close or low_cover) and n_inl > cfg.kf_min_tracked
         # monocular weak tracking (ORB-SLAM3's c4, there for inertial monocular): fewer than
         # kf_weak_mono tracked points; forward motion leaves the mapped area within frames and
         # keyframes are the only source of new points
-        c4 = sysm.sensor == "mono" and 15 < n_inl < cfg.kf_weak_mono
+        c4 = sysm.sensor == "mono" and cfg.kf_min_tracked < n_inl < cfg.kf_weak_mono
         return (c2 and (c1a or c1b or c1c or low_cover)) or c4
 
     def _create_keyframe(self, frame: SlamFrame) -> KeyFrame:
