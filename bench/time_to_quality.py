@@ -16,12 +16,13 @@ Every frame is fed to the frontend before the first step (min_initial_keyframes 
 count; counted by the clock), as an offline 3D-GS trainer has all images, so every mark scores
 the same test views. Loggers, progress bars, image logging and checkpoints are off.
 
-Schedule length: the LR / densification schedules scale with trainer.max_steps. Unless
---max-steps is given, each curve first runs a --warmup-s second warm-up of the same run
-(discarded) and sets max_steps = steps/s of the warm-up's second half x (budget - feeding
-seconds), so that the schedule ends near the budget. Maps grow while training, so later steps
-are slower than the warm-up's: the JSON records the steps reached and max_steps of each curve
-(schedule_done); a run that reaches max_steps before the budget ends there.
+Schedule length: the LR / densification schedules scale with trainer.max_steps, which is, in
+this order: --max-steps (every curve); with --pace-from JSON the steps the same curve reached in
+that earlier output; else from a --warmup-s second warm-up of the same run (discarded):
+steps/s of the warm-up's second half x (budget - feeding seconds). The warm-up sees the map
+before it grows, so on a growing map it overestimates (docs/performance.md: the 7-Scenes
+schedules were 52-56 % done at the budget); the JSON records max_steps, the steps reached and
+schedule_done per curve. A run that reaches max_steps before the budget ends there.
 
 Each curve runs in its own process (peak RSS per curve). Output: outputs/bench/time_to_quality.json
 (every point: method, dataset, seconds, steps, psnr, ssim, anchors, gaussians, peak_rss_mb,
@@ -59,6 +60,7 @@ FEED_ALL = "callbacks.slam_bridge.min_initial_keyframes=1000000000"  # every fra
 MARKS = (15, 30, 60, 120, 300, 600, 1200, 1800, 3600)
 TABLE_MINUTES = (1, 2, 5, 10)
 PROVISIONAL_STEPS_PER_S = 10.0  # max_steps of the warm-up run only (its schedule is not used)
+WARMUP_S = 15.0
 
 
 class TrainingClock(L.Callback):
@@ -187,7 +189,7 @@ def view_scorer(sequence, bridge, out: Path) -> Callable[[L.LightningModule], di
 
 
 def run_curve(overrides: list[str], budget: float, marks: list[float], out: Path, max_steps: int | None = None,
-              warmup_s: float = 15.0, wrap_score: Callable | None = None) -> dict:  # fmt: skip
+              warmup_s: float = WARMUP_S, wrap_score: Callable | None = None) -> dict:  # fmt: skip
     """One curve: train for `budget` training seconds, scoring the test views at `marks`.
 
     max_steps None: from a warm-up (module doc). wrap_score: score -> score (tests: slow it down).
@@ -224,8 +226,12 @@ def flatten(curves: list[dict]) -> list[dict]:
 
 
 def at_minute(curve: dict, minutes: float) -> dict | None:
-    """The first point at or after `minutes` of training (None: the curve ends before)."""
-    return next((p for p in curve["points"] if p["seconds"] >= minutes * 60 - 1e-9), None)
+    """The first point at or after `minutes` of training; a curve whose schedule ended before
+    (steps == max_steps) within its budget gives its final point; None past the budget."""
+    point = next((p for p in curve["points"] if p["seconds"] >= minutes * 60 - 1e-9), None)
+    if point is None and curve["steps"] >= curve["max_steps"] and minutes * 60 <= curve["budget_s"]:
+        return curve["points"][-1]
+    return point
 
 
 def table(curves: list[dict]) -> str:
@@ -236,11 +242,13 @@ def table(curves: list[dict]) -> str:
         cells = []
         for m in TABLE_MINUTES:
             p = at_minute(c, m)
-            cells.append("-" if p is None else f"{p['psnr']:.2f} ({p['ssim']:.3f})")
+            done = p is not None and p["seconds"] < m * 60 - 1e-9  # the schedule had ended: its final map
+            cells.append("-" if p is None else f"{p['psnr']:.2f} ({p['ssim']:.3f}){' *' if done else ''}")
         last = c["points"][-1]
         lines.append(f"| {c['dataset']} | {c['method']} | " + " | ".join(cells) + f" | {c['steps']} ({c['max_steps']}) | "
                      f"{last['anchors']} / {last['gaussians']} | {last['peak_rss_mb']:.0f} |")  # fmt: skip
-    return "\n".join(lines)
+    return "\n".join(lines + ["", "PSNR dB (SSIM) at the first evaluation at or after the mark; * the schedule ended earlier "
+                               "(max_steps reached): the finished map; - past the budget."])
 
 
 def chart(curves: list[dict], path: Path) -> None:
@@ -249,14 +257,24 @@ def chart(curves: list[dict], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     datasets = list(dict.fromkeys(c["dataset"] for c in curves))
     fig, axes = plt.subplots(1, len(datasets), figsize=(4.2 * len(datasets), 3.2), squeeze=False)
     for ax, name in zip(axes[0], datasets):
         for c in (c for c in curves if c["dataset"] == name):
             ax.plot([p["seconds"] for p in c["points"]], [p["psnr"] for p in c["points"]], marker="o", ms=3, label=c["method"])
+        seconds: list[int] = []  # tick labels: the points' seconds, at least 25 % apart
+        for t in sorted({round(p["seconds"]) for c in curves if c["dataset"] == name for p in c["points"]}):
+            if not seconds or t >= 1.25 * seconds[-1]:
+                seconds.append(t)
         ax.set_xscale("log")
-        ax.set_title(name, fontsize=10)
+        ax.xaxis.set_major_locator(matplotlib.ticker.FixedLocator(seconds))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FixedFormatter([str(s) for s in seconds]))
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        ax.tick_params(labelsize=7)
+        views = next(c["points"][-1]["test_views"] for c in curves if c["dataset"] == name)
+        ax.set_title(f"{name} ({views} test views)", fontsize=10)
         ax.set_xlabel("training seconds (wall clock, evaluation excluded)", fontsize=8)
         ax.set_ylabel("test-view PSNR (dB)", fontsize=8)
         ax.grid(True, which="both", alpha=0.3)
@@ -274,13 +292,21 @@ def write_outputs(record: dict, json_path: Path, png_path: Path) -> None:
     chart(record["curves"], png_path)
 
 
+def paced_steps(path: Path | None, dataset: str, method: str, budget: float) -> int | None:
+    """The steps the same curve (dataset, method, budget) reached in the output JSON at path."""
+    if path is None:
+        return None
+    curves = json.loads(path.read_text())["curves"]
+    return next((c["steps"] for c in curves if (c["dataset"], c["method"], c["budget_s"]) == (dataset, method, budget)), None)
+
+
 def _one(args) -> None:
     """--curve DATASET METHOD: one curve in this process, written to --part."""
     dataset, method = args.curve
     budget = args.sample_budget if dataset == "sample" and args.sample_budget else args.budget
     out = Path(tempfile.mkdtemp(prefix=f"ttq_{dataset}_{method}_", dir=args.work))
     res = run_curve(DATASETS[dataset] + METHODS[method] + [f"seed={args.seed}"] + args.extra, budget, args.marks, out,
-                    args.max_steps, args.warmup_s)  # fmt: skip
+                    args.max_steps or paced_steps(args.pace_from, dataset, method, budget), args.warmup_s)  # fmt: skip
     Path(args.part).write_text(json.dumps({"dataset": dataset, "method": method, "budget_s": budget, **res}))
 
 
@@ -292,7 +318,10 @@ def main() -> None:
     p.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     p.add_argument("--max-steps", type=int, default=None, help="trainer.max_steps of every curve (default: from a warm-up)")
-    p.add_argument("--warmup-s", type=float, default=15.0, help="seconds of warm-up training to measure steps/s")
+    p.add_argument("--warmup-s", type=float, default=WARMUP_S, help="seconds of warm-up training to measure steps/s")
+    p.add_argument("--pace-from", type=Path, default=None,
+                   help="an earlier output JSON: max_steps of each curve = the steps that curve reached there (same budget)")
+    p.add_argument("--report", type=Path, default=None, help="only print the table and redraw the chart of this output JSON")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--extra", nargs="*", default=[], help="more overrides for every run")
     p.add_argument("--work", default=str(ROOT / "outputs" / "bench" / "time_to_quality"), help="per-curve run folders")
@@ -304,6 +333,11 @@ def main() -> None:
     Path(args.work).mkdir(parents=True, exist_ok=True)
     if args.curve:
         return _one(args)
+    if args.report:
+        record = json.loads(args.report.read_text())
+        chart(record["curves"], Path(args.chart))
+        print(f"{record['machine']['cpu']}; before: {record['machine']['uptime']}; after: {record.get('uptime_after')}")
+        return print(table(record["curves"]))
     if "7scenes" in args.datasets and not (SEVEN_SCENES / "seq").is_dir():
         print(f"time_to_quality: skipping 7scenes: the shared frames are not at {SEVEN_SCENES}", file=sys.stderr)
         args.datasets.remove("7scenes")

@@ -58,4 +58,6 @@ def test_curve_points_clock_and_outputs(tmp_path):
     assert {"method", "dataset", "seconds", "steps", "psnr", "ssim", "anchors", "gaussians", "peak_rss_mb"} <= set(saved["points"][0])
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size < 150_000
     rows = bench.table(record["curves"]).splitlines()
-    assert len(rows) == 4 and "synthetic | segs" in rows[2]
+    assert rows[1].startswith("|---") and "synthetic | segs" in rows[2] and "synthetic | plain_3dgs" in rows[3]
+    assert bench.paced_steps(out_json, "synthetic", "segs", 3.0) == curve["steps"]
+    assert bench.paced_steps(out_json, "synthetic", "segs", 600.0) is None
