@@ -217,7 +217,11 @@ def run_curve(overrides: list[str], budget: float, marks: list[float], out: Path
 
 def _machine() -> dict:
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
-    return {"cpu": cpu, "threads": torch.get_num_threads(), "uptime": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
+    return {"cpu": cpu, "threads": torch.get_num_threads(), "uptime": _uptime()}
+
+
+def _uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
 def flatten(curves: list[dict]) -> list[dict]:
@@ -349,7 +353,7 @@ def main() -> None:
             print(f"time_to_quality: {dataset} / {method}", flush=True)
             subprocess.run(cmd, check=True, cwd=ROOT)
             record["curves"].append(json.loads(part.read_text()))
-            record["uptime_after"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+            record["uptime_after"] = _uptime()
             write_outputs(record, Path(args.out), Path(args.chart))  # after every curve: an interrupted run keeps its curves
     print(f"{record['machine']['cpu']}, {record['machine']['threads']} threads; before: {record['machine']['uptime']}; "
           f"after: {record.get('uptime_after')}")
