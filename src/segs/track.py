@@ -22,9 +22,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from segs.config import instantiate, make_sequence, user_errors_exit, validate
+from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
-from segs.slam.runner import run_sequence
+from segs.slam.process import FrontendProcess
+from segs.slam.runner import RunResult, run_sequence
 from segs.trajectory import ate, estimated_c2w, write_tum
 
 log = logging.getLogger("segs.track")
@@ -55,7 +56,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     sequence = make_sequence(cfg.data)
     if len(sequence) == 0:
         raise DataError(f"data: the sequence at {cfg.data.get('root', '?')} has no frames")
-    frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
+    frontend = make_frontend(cfg, sequence)
     align = OmegaConf.select(cfg, "camera.ate_align", default=None) or ("sim3" if sequence.sensor == "mono" else "se3")
     if align not in ("se3", "sim3", "none"):
         raise ConfigError(f"camera.ate_align={align!r} is not one of se3, sim3, none")
@@ -66,7 +67,13 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
 
         bar = tqdm(total=len(sequence), desc="tracking", leave=False, disable=not sys.stderr.isatty())
     t0 = time.perf_counter()
-    result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None)
+    if isinstance(frontend, FrontendProcess):
+        try:
+            result = _run_process(frontend, bar)
+        finally:
+            frontend.close()
+    else:
+        result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None)
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
@@ -95,6 +102,9 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         "tracked_fraction": len(traj) / n,
         "lost_frames": len(lost),
         "lost_ranges": lost_ranges(lost),
+        "slam_mode": OmegaConf.select(cfg, "slam_mode", default="interleaved"),
+        # slam_mode=live: frames skipped because tracking was behind the camera (never tracked)
+        "frames_dropped_live": len(frontend.dropped_frames()) if isinstance(frontend, FrontendProcess) else 0,
         "keyframes": len(kfs),
         "ate_rmse_m": ate_result["rmse"],
         "ate": ate_result,
@@ -115,10 +125,23 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         f"  ATE RMSE ({align}) {'n/a' if rmse is None else f'{rmse * 100:.2f} cm'}"
         f" over {ate_result['pairs']} frames\n"
         f"  {metrics['tracking_fps'] or 0:.1f} frames/s in process() ({result.process_s:.1f} s), "
-        f"finish {result.finish_s:.1f} s\n"
-        f"  trajectory.txt (TUM), keyframes.txt, tracking.json"
+        f"finish {result.finish_s:.1f} s, wall {wall:.1f} s"
+        + (f", {metrics['frames_dropped_live']} frames dropped (live)" if metrics["slam_mode"] == "live" else "") + "\n"
+        "  trajectory.txt (TUM), keyframes.txt, tracking.json"
     )
     return metrics
+
+
+def _run_process(frontend: FrontendProcess, bar) -> RunResult:
+    """Wait for a frontend process to track the sequence; process_s is the child's own time
+    in process() (its throughput), finish_s is not separated from it (0)."""
+    result = RunResult()
+    while not frontend.done():
+        result.update = result.update.merge(frontend.poll(timeout=0.2))
+        if bar is not None:
+            bar.update(frontend.cursor - bar.n)
+    result.process_s = frontend.process_seconds
+    return result
 
 
 @hydra.main(config_path="../../conf", config_name="train", version_base="1.3")
