@@ -198,9 +198,12 @@ def make_frontend(cfg: DictConfig, sequence):
     process (it is also built here once, so a bad slam config fails before the child starts)."""
     import functools
 
-    factory = functools.partial(instantiate(cfg.slam), camera=sequence.camera, sensor=sequence.sensor)
-    frontend = factory()
     mode = OmegaConf.select(cfg, "slam_mode", default="interleaved")
+    extra = {}
+    if mode == "live" and "threaded" in cfg.slam:  # a camera does not wait for local mapping
+        extra["threaded"] = True
+    factory = functools.partial(instantiate(cfg.slam), camera=sequence.camera, sensor=sequence.sensor, **extra)
+    frontend = factory()
     if mode == "interleaved":
         return frontend
     from segs.slam.process import FrontendProcess

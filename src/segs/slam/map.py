@@ -247,22 +247,35 @@ class Map:
     def update_descriptors(self, pids: np.ndarray) -> None:
         """Distinctive descriptor: the observation's descriptor with the least median distance.
 
-        Vectorized per group of points with the same number of observations.
+        The observations' descriptors are gathered per keyframe, then the distances are computed
+        per group of points with the same number of observations (vectorized).
         """
-        groups: dict[int, tuple[list, list]] = {}
+        pts, counts, kf_of, kp_of = [], [], [], []
         for pid in np.asarray(pids, np.int64).tolist():
             ds = [(k, i) for k, i in self.obs[pid].items() if k in self.kfs]
             if len(ds) < 2:
                 continue
-            g = groups.setdefault(len(ds), ([], []))
-            g[0].append(pid)
-            g[1].append(np.stack([self.kfs[k].kp.desc[i] for k, i in ds]))
-        for n, (gp, gd) in groups.items():
-            d = np.stack(gd)  # [P,n,32]
+            pts.append(pid)
+            counts.append(len(ds))
+            for k, i in ds:
+                kf_of.append(k)
+                kp_of.append(i)
+        if not pts:
+            return
+        kf_of, kp_of = np.asarray(kf_of, np.int64), np.asarray(kp_of, np.int64)
+        desc = np.empty((len(kf_of), 32), np.uint8)  # [O,32] observation descriptors, point-major
+        for k in np.unique(kf_of).tolist():
+            sel = kf_of == k
+            desc[sel] = self.kfs[k].kp.desc[kp_of[sel]]
+        pts, counts = np.asarray(pts, np.int64), np.asarray(counts, np.int64)
+        starts = np.cumsum(counts) - counts
+        for n in np.unique(counts).tolist():
+            g = counts == n
+            d = desc[starts[g][:, None] + np.arange(n)]  # [P,n,32]
             d64 = d.view(np.uint64)  # [P,n,4]
             dm = np.bitwise_count(d64[:, :, None, :] ^ d64[:, None, :, :]).sum(-1)  # [P,n,n]
             best = np.argmin(np.median(dm, axis=2), axis=1)
-            self.desc[np.asarray(gp)] = d[np.arange(len(gp)), best]
+            self.desc[pts[g]] = d[np.arange(int(g.sum())), best]
 
     def predict_level(self, pids: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """Predicted pyramid level [M] for points pids viewed from distance dist [M]."""

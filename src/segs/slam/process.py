@@ -132,6 +132,7 @@ class FrontendProcess(Frontend):
             self._final = report
             self._traj, self._lost = report["trajectory"], set(report["lost"])
             self._kf_frames, self.wall_seconds = report["keyframe_frames"], report["wall_s"]
+            self._dropped.extend(report["dropped"])
             self.cursor = len(self.sequence)
             return update
         raise RuntimeError(f"unexpected message from the slam frontend process: {msg[0]!r}")
@@ -249,7 +250,7 @@ class FrontendProcess(Frontend):
 # ---------------------------------------------------------------------- child side
 def _next_live(timestamps: np.ndarray, i: int, t0: float, ts0: float, rate: float) -> tuple[int, list[int]]:
     """Live pacing: wait for frame i's time; if later frames' times have passed already, the
-    newest of them is tracked and the ones before it dropped. -> (frame to track, dropped)."""
+    newest of them is due and the ones before it are dropped. -> (frame due, dropped)."""
     now = (time.perf_counter() - t0) * rate + ts0
     if timestamps[i] > now:
         time.sleep((timestamps[i] - now) / rate)
@@ -257,6 +258,72 @@ def _next_live(timestamps: np.ndarray, i: int, t0: float, ts0: float, rate: floa
     newest = int(np.searchsorted(timestamps, now, side="right")) - 1
     newest = max(i, min(newest, len(timestamps) - 1))
     return newest, list(range(i, newest))
+
+
+class _FrameSource:
+    """The child's frames, read (decoded, depth registered) in a background thread so that
+    reading overlaps tracking (OpenCV's decoders release the GIL).
+
+    process: every frame in order, up to `ahead` read in advance. live: a camera; frame i is read
+    at its time (rate x wall clock) into a one-frame slot; a frame still in the slot when the next
+    arrives, or whose time passed before it could be read, is dropped (the tracker always gets
+    the newest image, as from a live driver).
+    """
+
+    def __init__(self, sequence: Sequence, start: int, live: bool, rate: float, ahead: int = 4):
+        self.sequence, self.live, self.rate = sequence, live, rate
+        self.timestamps = np.asarray(sequence.timestamps, np.float64)
+        self._cv = threading.Condition()
+        self._frames: list[Frame] = []
+        self._dropped: list[int] = []
+        self._ended = False
+        self._error: BaseException | None = None
+        self._ahead = 1 if live else ahead
+        self._stop = False
+        threading.Thread(target=self._read, args=(start,), name="segs-frames", daemon=True).start()
+
+    def _read(self, start: int) -> None:
+        try:
+            n, i = len(self.sequence), start
+            t0 = time.perf_counter()
+            ts0 = float(self.timestamps[i]) if i < n else 0.0
+            while i < n and not self._stop:
+                dropped: list[int] = []
+                if self.live:
+                    i, dropped = _next_live(self.timestamps, i, t0, ts0, self.rate)
+                frame = self.sequence[i]
+                with self._cv:
+                    self._dropped.extend(dropped)
+                    if self.live and self._frames:  # the tracker did not take the previous one
+                        self._dropped.extend(f.index for f in self._frames)
+                        self._frames.clear()
+                    while not self.live and len(self._frames) >= self._ahead and not self._stop:
+                        self._cv.wait()
+                    self._frames.append(frame)
+                    self._cv.notify_all()
+                i += 1
+        except BaseException as exc:  # raised in the tracker's thread by next()
+            self._error = exc
+        with self._cv:
+            self._ended = True
+            self._cv.notify_all()
+
+    def next(self) -> tuple[Frame | None, list[int]]:
+        """The next frame to track (None after the last) and the frames dropped before it."""
+        with self._cv:
+            while not self._frames and not self._ended:
+                self._cv.wait()
+            if self._error is not None:
+                raise self._error
+            frame = self._frames.pop(0) if self._frames else None
+            dropped, self._dropped = self._dropped, []
+            self._cv.notify_all()
+        return frame, dropped
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
 
 
 def _serve() -> None:
@@ -295,9 +362,8 @@ def _serve() -> None:
 
 def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, cursor: int,
            commands: queue.Queue, send) -> None:
-    timestamps = np.asarray(sequence.timestamps, np.float64)
-    n, i = len(sequence), int(cursor)
-    t0, ts0 = time.perf_counter(), float(timestamps[i]) if i < n else 0.0
+    t0 = time.perf_counter()
+    source = _FrameSource(sequence, int(cursor), mode == "live", rate)
 
     def serve_commands(block: bool) -> bool:
         """Answer pending commands; False when the parent asks the child to end."""
@@ -311,22 +377,22 @@ def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, curso
             if cmd == "state":
                 send(("state", frontend.state_dict()))
 
-    while i < n:
+    while True:
         if not serve_commands(block=False):
+            source.stop()
             return
-        dropped: list[int] = []
-        if mode == "live":
-            i, dropped = _next_live(timestamps, i, t0, ts0, rate)
-        frame = sequence[i]
+        frame, dropped = source.next()
+        if frame is None:
+            tail = dropped
+            break
         ts = time.perf_counter()
         res = frontend.process(frame)
         seconds = time.perf_counter() - ts
-        send(("frame", i, res.w2c, frontend.poll(), frontend.keyframe_frames(), seconds, dropped))
-        i += 1
+        send(("frame", frame.index, res.w2c, frontend.poll(), frontend.keyframe_frames(), seconds, dropped))
     update = frontend.finish()
     report = {"trajectory": frontend.trajectory(), "lost": frontend.lost_frames(),
               "keyframe_frames": frontend.keyframe_frames(), "wall_s": time.perf_counter() - t0,
-              "stats": frontend.stats() if hasattr(frontend, "stats") else {}}
+              "dropped": tail, "stats": frontend.stats() if hasattr(frontend, "stats") else {}}
     send(("done", update, report))
     while serve_commands(block=True):  # state requests until the parent closes
         pass
