@@ -66,12 +66,12 @@ _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("eval.holdout_every", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
     ("eval.save_renders", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
     ("eval.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
-    ("camera.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
+    ("sensor.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
     ("eval.lpips_weights", lambda v: v is None or (isinstance(v, str) and Path(v).expanduser().is_file()),
      "null or an existing AlexNet weights file (alexnet-owt-7be5be79.pth)"),
     ("eval.active_opacity", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
     ("data.downscale", lambda v: _number(v) and v >= 1, "a number >= 1"),
-    ("camera.sensor", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
+    ("sensor.mode", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
     ("raster.backend", lambda v: v in ("auto", "torch", "cpu", "cuda"), "one of auto, torch, cpu, cuda"),
     ("raster.near", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
     ("callbacks.slam_bridge.frames_per_step", lambda v: v is None or (_number(v) and v > 0), "null or a number > 0"),
@@ -134,6 +134,9 @@ def validate(cfg: DictConfig) -> None:
     (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
     the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
     """
+    renamed = OmegaConf.select(cfg, "camera.renamed_to", default=None)
+    if renamed is not None:
+        raise ConfigError(f"config group camera was renamed sensor: use {renamed}")
     _check_finite(cfg)
     for key, ok, expected in _CHECKS:
         value = OmegaConf.select(cfg, key, default="__absent__")

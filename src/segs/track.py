@@ -6,7 +6,7 @@ Same configs as `segs.train`: the sequence (`data`) is fed frame by frame to the
 - trajectory.txt: the estimated camera-to-world poses of the tracked frames (TUM format),
 - keyframes.txt: `kf_id frame_index timestamp` of the keyframes still in the map,
 - tracking.json: ATE RMSE (evo; SE(3) for RGB-D / stereo, Sim(3) for monocular, from
-  `camera.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics.
+  `sensor.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics.
 
 Run folder: outputs/track/runs/<time> (task_name=track unless given).
 """
@@ -57,9 +57,9 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     if len(sequence) == 0:
         raise DataError(f"data: the sequence at {cfg.data.get('root', '?')} has no frames")
     frontend = make_frontend(cfg, sequence)
-    align = OmegaConf.select(cfg, "camera.ate_align", default=None) or ("sim3" if sequence.sensor == "mono" else "se3")
+    align = OmegaConf.select(cfg, "sensor.ate_align", default=None) or ("sim3" if sequence.sensor == "mono" else "se3")
     if align not in ("se3", "sim3", "none"):
-        raise ConfigError(f"camera.ate_align={align!r} is not one of se3, sim3, none")
+        raise ConfigError(f"sensor.ate_align={align!r} is not one of se3, sim3, none")
 
     bar = None
     if progress:
