@@ -199,11 +199,41 @@ def test_threaded_mode_and_checkpoint_round_trip():
     assert all(r.tracked for r in run.results)
 
 
-def test_tracking_state_enum_round_trips_checkpoint():
-    """The tracker state is a TrackingState after a checkpoint round trip, and a checkpoint written
-    before the Enum (plain "ok" string, configs without the named thresholds) loads and tracks on."""
+def _as_legacy_v1(state: dict) -> dict:
+    """A state in the layout of "segs.orb.v1" checkpoints (before FramePoses and MapOutbox): the
+    frontend's attributes, Tracker / LocalMapper / LoopCloser pickled whole with their config
+    (written before TrackingState and the named thresholds: the state a plain string, config
+    fields missing), frame poses as ("kf", id) / ("rel", id, rel) / ("abs", None, w2c) tuples."""
     import pickle
 
+    from segs.slam.local_mapping import LocalMapper
+    from segs.slam.loop_closing import LoopCloser
+    from segs.slam.tracking import Tracker
+
+    d = pickle.loads(state["blob"])
+    poses = d["tracker"].pop("poses")
+    traj = {i: ("abs", None, p.w2c) if p.kf_id is None else ("kf", p.kf_id) if p.rel is None else ("rel", p.kf_id, p.rel)
+            for i, p in poses.poses.items()}  # fmt: skip
+    tracking = C.TrackingConfig()
+    for name in ("min_pose_inliers", "min_matches_ref", "local_map_ratio", "kf_min_tracked"):
+        del tracking.__dict__[name]  # an old config: ignored (the loading frontend's own applies)
+    objs = {}
+    for name, cls, cfg in (("tracker", Tracker, tracking), ("mapper", LocalMapper, C.MappingConfig()),
+                           ("loop", LoopCloser, C.LoopConfig())):
+        obj = cls.__new__(cls)  # what unpickling an old component does
+        obj.__dict__.update(d[name], cfg=cfg)
+        objs[name] = obj
+    objs["tracker"].state = "ok"
+    outbox = d["outbox"]
+    old = {"map": d["map"], "kfdb": d["kfdb"], **objs, "_traj": traj, "_lost": set(poses.lost),
+           "_kf_frames": dict(poses.kf_frames), "_pending": outbox._pending, "_pending_pids": outbox._chunks}
+    return {"format": "segs.orb.v1", "blob": pickle.dumps(old)}
+
+
+def test_tracking_state_enum_round_trips_checkpoint():
+    """The tracker state is a TrackingState after a checkpoint round trip, and a checkpoint written
+    before the Enum, FramePoses and MapOutbox ("segs.orb.v1") loads and tracks on exactly as the
+    frontend that wrote it does."""
     from segs.slam.tracking import TrackingState
 
     seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
@@ -211,17 +241,18 @@ def test_tracking_state_enum_round_trips_checkpoint():
     run_sequence(fe, seq, frames=range(6))
     assert fe.tracker.state is TrackingState.OK
     state = fe.state_dict()
+    assert state["format"] == "segs.orb.v2"
     new = OrbFrontend(seq.camera, "rgbd")
     new.load_state_dict(state)
     assert new.tracker.state is TrackingState.OK
-    old = pickle.loads(state["blob"])
-    old["tracker"].state = "ok"
-    for name in ("min_pose_inliers", "min_matches_ref", "local_map_ratio", "kf_min_tracked"):
-        old["tracker"].cfg.__dict__.pop(name)
     old_fe = OrbFrontend(seq.camera, "rgbd")
-    old_fe.load_state_dict({"format": "segs.orb.v1", "blob": pickle.dumps(old)})
+    old_fe.load_state_dict(_as_legacy_v1(state))
     assert old_fe.tracker.state is TrackingState.OK
     assert old_fe.tracker.cfg.min_pose_inliers == 10
+    assert old_fe.trajectory().keys() == fe.trajectory().keys() and old_fe.keyframe_frames() == fe.keyframe_frames()
+    run_sequence(fe, seq, frames=range(6, 12))
     run = run_sequence(old_fe, seq, frames=range(6, 12))
     assert old_fe.tracker.state is TrackingState.OK
     assert len(old_fe.lost_frames()) == 0, run
+    want, got = fe.trajectory(), old_fe.trajectory()
+    assert got.keys() == want.keys() and all(np.array_equal(got[i], want[i]) for i in want)
