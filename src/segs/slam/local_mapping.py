@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
-from segs.slam.config import MappingConfig
+from segs.slam.config import MappingConfig, MatchingConfig
 from segs.slam.map import KeyFrame, Map
 from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
 from segs.slam.features import hamming_pairs
@@ -27,15 +27,16 @@ from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
 class LocalMapper:
     """Local mapping of one keyframe at a time on `map` (see the module docstring).
 
-    cfg: the mapping group; setup: the sensor; vocab / kfdb: bag of words of each new keyframe
+    cfg / match_cfg: the mapping and matching groups; setup: the sensor; vocab / kfdb: bag of words of each new keyframe
     into the keyframe database; ba: the bundle adjuster (`optimize.BundleAdjuster` or its child
     process twin, `run_two_pass`); outbox: receives the mature points and the poses BA touched;
     log: event messages.
     """
 
-    def __init__(self, cfg: MappingConfig, setup: SensorSetup, map_: Map, vocab: Vocabulary,
-                 kfdb: KeyFrameDatabase, ba: BundleAdjuster, outbox: MapOutbox, log: Callable[[str], None]):
-        self.cfg, self.setup, self.map, self.vocab, self.kfdb = cfg, setup, map_, vocab, kfdb
+    def __init__(self, cfg: MappingConfig, match_cfg: MatchingConfig, setup: SensorSetup, map_: Map,
+                 vocab: Vocabulary, kfdb: KeyFrameDatabase, ba: BundleAdjuster, outbox: MapOutbox,
+                 log: Callable[[str], None]):
+        self.cfg, self.match_cfg, self.setup, self.map, self.vocab, self.kfdb = cfg, match_cfg, setup, map_, vocab, kfdb
         self.ba, self.outbox, self.log = ba, outbox, log
         self.recent: list[int] = []  # young points (ids), culled or mature after a few keyframes
         self.ba_times: list[float] = []  # seconds per bundle adjustment
@@ -113,7 +114,8 @@ class LocalMapper:
 
     def _cull_recent(self, kf: KeyFrame) -> None:
         m = self.map
-        th_obs = 2 if self.setup.sensor == "mono" else 3
+        cfg = self.cfg
+        th_obs = cfg.recent_min_obs_mono if self.setup.sensor == "mono" else cfg.recent_min_obs
         keep, mature = [], []
         for p in self.recent:
             if not m.valid[p]:
@@ -121,9 +123,9 @@ class LocalMapper:
             age = kf.kf_id - m.first_kf[p]
             if m.found[p] / max(m.visible[p], 1) < self.cfg.min_found_ratio:
                 m.set_point_bad(p)
-            elif age >= 2 and m.n_obs[p] <= th_obs:
+            elif age >= cfg.recent_cull_age and m.n_obs[p] <= th_obs:
                 m.set_point_bad(p)
-            elif age >= 3:
+            elif age >= cfg.recent_mature_age:
                 mature.append(p)
             else:
                 keep.append(p)
@@ -225,7 +227,7 @@ class LocalMapper:
         for n in kf.covisible(nn):
             if n in m.kfs and n not in targets:
                 targets.append(n)
-                for n2 in m.kfs[n].covisible(5):
+                for n2 in m.kfs[n].covisible(self.cfg.fuse_second_neighbors):
                     if n2 != kf.kf_id and n2 in m.kfs and n2 not in targets:
                         targets.append(n2)
         _, own = m.kf_point_ids(kf)
@@ -240,10 +242,11 @@ class LocalMapper:
         m.update_descriptors(own)
         m.update_connections(kf)
 
-    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float = 3.0, S: np.ndarray | None = None) -> int:
+    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float | None = None, S: np.ndarray | None = None) -> int:
         """Project points pids into kf and merge with what its keypoints hold (ORB-SLAM Fuse).
 
-        S: optional similarity w2c [4,4] used for the projection instead of kf.w2c (loop fusion).
+        pids [M]: point ids; th: projection radius x level scale (None: mapping.fuse_th); S: optional
+        similarity w2c [4,4] used for the projection instead of kf.w2c (loop fusion).
         Returns the number of fused / added observations.
         """
         m = self.map
@@ -252,7 +255,7 @@ class LocalMapper:
         if len(pids) == 0:
             return 0
         w2c = S if S is not None else kf.w2c
-        q, k = self.project_match(kf, pids, w2c, th, fuse=True)
+        q, k = self.project_match(kf, pids, w2c, self.cfg.fuse_th if th is None else th, fuse=True)
         n, merged = 0, []
         for p, i in zip(pids[q].tolist(), k.tolist()):
             if not m.valid[p] or kf.kf_id in m.obs[p]:
@@ -275,7 +278,7 @@ class LocalMapper:
     def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,
                       fuse: bool) -> tuple[np.ndarray, np.ndarray]:
         """Vectorized projection search of points into a keyframe (chi2-gated when fuse)."""
-        m, su, cam = self.map, self.setup, self.setup.camera
+        m, su, cam, mc = self.map, self.setup, self.setup.camera, self.match_cfg
         s = float(np.cbrt(np.linalg.det(w2c[:3, :3])))
         P = m.pos[pids]
         pc = transform(w2c, P)
@@ -285,7 +288,8 @@ class LocalMapper:
         dist = np.linalg.norm(PO, axis=1)
         cos = (PO * m.normal[pids]).sum(1) / np.maximum(dist, 1e-12)
         ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height) \
-            & (dist >= 0.8 * m.dmin[pids]) & (dist <= 1.2 * m.dmax[pids]) & (cos >= 0.5)
+            & (dist >= mc.dist_margin_min * m.dmin[pids]) & (dist <= mc.dist_margin_max * m.dmax[pids]) \
+            & (cos >= mc.min_view_cos)
         sel = np.flatnonzero(ok)
         level = m.predict_level(pids[sel], dist[sel])
         radius = th * su.scales[level]
@@ -450,7 +454,7 @@ class LocalMapper:
         """ORB-SLAM's redundancy test: a covisible keyframe is culled when more than `redundancy`
         of its (close) points are seen by at least 3 other keyframes at the same or a finer scale."""
         m, su = self.map, self.setup
-        th_obs = 3
+        th_obs = self.cfg.redundant_observers
         for n in kf.covisible(self.cfg.cull_window):
             k = m.kfs.get(n)
             if k is None or n == m.origin_kf or k.protected or n == kf.kf_id:

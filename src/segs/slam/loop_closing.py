@@ -45,7 +45,7 @@ class MapRefinement(Protocol):
 
     def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,
                       fuse: bool) -> tuple[np.ndarray, np.ndarray]: ...
-    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float = 3.0, S: np.ndarray | None = None) -> int: ...
+    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float | None = None, S: np.ndarray | None = None) -> int: ...
     def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None: ...
 
 
@@ -178,7 +178,7 @@ class LoopCloser:
         matched = {int(f): int(p) for f, p in zip(fi[inl], pids[inl])}
         free = np.array([p for p in loop_pids.tolist() if p not in set(matched.values())], np.int64)
         if len(free):
-            q, k = self.mapper.project_match(kf, free, Scw, th=10.0, fuse=False)
+            q, k = self.mapper.project_match(kf, free, Scw, th=self.cfg.guided_search_th, fuse=False)
             for qq, kk in zip(q.tolist(), k.tolist()):
                 matched.setdefault(int(kk), int(free[qq]))
         if len(matched) < self.cfg.min_total:
@@ -200,7 +200,7 @@ class LoopCloser:
         X[dep] = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d[dep], (uv[:, 1] - K[1, 2]) / K[1, 1] * d[dep], d[dep]], 1)
         return X, has | dep
 
-    def _ransac(self, X1, X2, uv1, uv2, s1, s2, iters: int = 300):
+    def _ransac(self, X1, X2, uv1, uv2, s1, s2):
         """S12 (X1 ~ S12 X2) by RANSAC over minimal sets of 3 -> (S [4,4] or None, inliers [N])."""
         su = self.setup
         rng = np.random.default_rng(self.seed)
@@ -219,7 +219,7 @@ class LoopCloser:
             e2 = ((u2.T + K[:2, 2] - uv2) ** 2).sum(1)
             return ok & (e1 < CHI2_SIM3 * s1) & (e2 < CHI2_SIM3 * s2)
 
-        for _ in range(iters):
+        for _ in range(self.cfg.ransac_iterations):
             s = rng.choice(n, 3, replace=False)
             if np.linalg.matrix_rank(X2[s] - X2[s].mean(0), tol=1e-6) < 2:
                 continue
@@ -273,7 +273,7 @@ class LoopCloser:
         before = {k: set(m.kfs[k].conn) for k in connected if k in m.kfs}
         for k in connected:
             if k in m.kfs:
-                self.mapper.fuse_into(m.kfs[k], loop_pids[m.valid[loop_pids]], th=4.0, S=corrected[k])
+                self.mapper.fuse_into(m.kfs[k], loop_pids[m.valid[loop_pids]], th=self.cfg.fuse_th, S=corrected[k])
         new_links: dict[int, set[int]] = {}
         for k in connected:
             if k in m.kfs:

@@ -48,14 +48,15 @@ class OrbFrontend(Frontend):
     """ORB-SLAM style frontend for "mono", "stereo" and "rgbd" sequences.
 
     camera: intrinsics of the (undistorted / rectified) images; sensor: "mono" | "stereo" | "rgbd";
-    features, tracking, init, mapping, loop: parameter groups (see segs.slam.config and
+    features, tracking, init, mapping, loop, matching: parameter groups (see segs.slam.config and
     conf/slam/orb.yaml); threaded: mapping in a background thread; seed: RANSAC seeds;
     final_global_ba: a global bundle adjustment in finish(); verbose: log events.
     """
 
     def __init__(self, camera: Camera, sensor: str, features: Mapping | None = None,
                  tracking: Mapping | None = None, init: Mapping | None = None,
-                 mapping: Mapping | None = None, loop: Mapping | None = None, threaded: bool = False,
+                 mapping: Mapping | None = None, loop: Mapping | None = None, matching: Mapping | None = None,
+                 threaded: bool = False,
                  seed: int = 0, final_global_ba: bool = False, verbose: bool = False):
         if sensor not in ("mono", "stereo", "rgbd"):
             raise ConfigError(f"slam: unknown sensor {sensor!r} (mono, stereo, rgbd)")
@@ -64,7 +65,7 @@ class OrbFrontend(Frontend):
 
         self.cfg = SimpleNamespace()
         for name, group in (("features", features), ("tracking", tracking), ("init", init),
-                            ("mapping", mapping), ("loop", loop)):
+                            ("mapping", mapping), ("loop", loop), ("matching", matching)):
             setattr(self.cfg, name, C.build(C.GROUPS[name], group, name))
         self.camera, self.sensor, self.seed = camera, sensor, int(seed)
         self.threaded, self.final_global_ba, self.verbose = bool(threaded), bool(final_global_ba), bool(verbose)
@@ -98,8 +99,8 @@ class OrbFrontend(Frontend):
         """The components around one map (a new one, or a checkpoint's), each given what it uses."""
         self.map, self.kfdb, self.outbox = map_, kfdb, outbox
         cfg, setup = self.cfg, self.setup
-        self.mapper = LocalMapper(cfg.mapping, setup, map_, self.vocab, kfdb, self.ba, outbox, self._log)
-        self.tracker = Tracker(cfg.tracking, cfg.init, setup, map_, self.vocab, kfdb, self.mapper, outbox,
+        self.mapper = LocalMapper(cfg.mapping, cfg.matching, setup, map_, self.vocab, kfdb, self.ba, outbox, self._log)
+        self.tracker = Tracker(cfg.tracking, cfg.init, cfg.matching, setup, map_, self.vocab, kfdb, self.mapper, outbox,
                                self.keyframes, self.seed, self._log)
         self.loop = LoopCloser(cfg.loop, setup, map_, kfdb, self.mapper, outbox, self.tracker.on_map_corrected,
                                self.seed, self._log)

@@ -16,7 +16,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from segs.slam.config import InitConfig, TrackingConfig
+from segs.slam.config import InitConfig, MatchingConfig, TrackingConfig
 from segs.slam.frame import SlamFrame
 from segs.slam.frame_poses import FramePoses
 from segs.slam.geometry import cam_center, inv_se3, orthonormalize, project, transform
@@ -58,16 +58,16 @@ class MappingStatus(Protocol):
 class Tracker:
     """Tracks frames against `map` and writes each frame's pose record (`poses`, a FramePoses).
 
-    cfg / init_cfg: the tracking and init groups; setup: the sensor; vocab / kfdb: relocalization
+    cfg / init_cfg / match_cfg: the tracking, init and matching groups; setup: the sensor; vocab / kfdb: relocalization
     candidates (and cleared with the map); mapper: local mapping's services; outbox: receives the
     monocular initial keyframe; mapping: whether local mapping takes keyframes; seed: RANSAC seeds;
     log: event messages. New keyframes are returned by `track`; the caller hands them to mapping.
     """
 
-    def __init__(self, cfg: TrackingConfig, init_cfg: InitConfig, setup: SensorSetup, map_: Map,
-                 vocab: Vocabulary, kfdb: KeyFrameDatabase, mapper: LocalMapping, outbox: MapOutbox,
+    def __init__(self, cfg: TrackingConfig, init_cfg: InitConfig, match_cfg: MatchingConfig, setup: SensorSetup,
+                 map_: Map, vocab: Vocabulary, kfdb: KeyFrameDatabase, mapper: LocalMapping, outbox: MapOutbox,
                  mapping: MappingStatus, seed: int, log: Callable[[str], None]):
-        self.cfg, self.init_cfg, self.setup, self.map = cfg, init_cfg, setup, map_
+        self.cfg, self.init_cfg, self.match_cfg, self.setup, self.map = cfg, init_cfg, match_cfg, setup, map_
         self.vocab, self.kfdb, self.mapper, self.outbox, self.mapping = vocab, kfdb, mapper, outbox, mapping
         self.seed, self.log = int(seed), log
         self.poses = FramePoses()
@@ -195,7 +195,7 @@ class Tracker:
         m.update_descriptors(pids)
         m.update_connections(kf0)
         m.update_connections(kf1)
-        self.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=20, fix_scale=False)
+        self.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=self.init_cfg.ba_iterations, fix_scale=False)
         # scale: median depth of the first keyframe = 1
         _, p0 = m.kf_point_ids(kf0)
         depth = transform(kf0.w2c, m.pos[p0])[:, 2]
@@ -267,13 +267,13 @@ class Tracker:
         th = self.cfg.window_motion if self.setup.sensor == "mono" else self.cfg.window_motion_stereo
         if self.velocity is None:
             frame.w2c = self.last.w2c.copy()
-            th *= 2
+            th *= self.cfg.window_no_velocity_factor
         else:
             frame.w2c = orthonormalize(self.velocity @ self.last.w2c)
         n = self._search_last(frame, th)
         if n < self.cfg.min_matches_motion:
             frame.points[:] = -1
-            n = self._search_last(frame, 2 * th)
+            n = self._search_last(frame, self.cfg.window_retry_factor * th)
         if n < self.cfg.min_matches_motion:
             frame.points[:] = -1
             return False
@@ -323,7 +323,7 @@ class Tracker:
         frame.points[:] = -1
         frame.outlier[:] = False
         w2c, inl = pnp_ransac(self.map.pos[pids], frame.kp.uv[fi], self.setup.K,
-                              reproj=np.sqrt(CHI2_MONO) * 2, seed=self.seed + frame.index)
+                              reproj=np.sqrt(CHI2_MONO) * self.cfg.pnp_reproj_factor, seed=self.seed + frame.index)
         if w2c is None or inl.sum() < self.cfg.min_pose_inliers:
             return 0
         frame.points[fi[inl]] = pids[inl]
@@ -367,7 +367,7 @@ class Tracker:
             if len(local) >= cap:
                 break
             kf = m.kfs[k]
-            extra = kf.covisible(10) + sorted(kf.children) + ([kf.parent] if kf.parent is not None else [])
+            extra = kf.covisible(self.cfg.local_map_covisible) + sorted(kf.children) + ([kf.parent] if kf.parent is not None else [])
             for n in extra:
                 if n in m.kfs and n not in seen and len(local) < cap:
                     local.append(n)
@@ -396,13 +396,13 @@ class Tracker:
     def _local_th(self, frame: SlamFrame) -> float:
         th = self.cfg.local_map_th
         if self.setup.sensor == "rgbd":
-            th *= 3
+            th *= self.cfg.local_map_th_rgbd
         if frame.index - self.last_reloc_frame < 2:
-            th *= 5
+            th *= self.cfg.local_map_th_reloc
         return th
 
     def _search_local(self, frame: SlamFrame, th: float) -> int:
-        m, cam = self.map, self.setup.camera
+        m, cam, cfg, mc = self.map, self.setup.camera, self.cfg, self.match_cfg
         pids = self._local_pids
         pids = pids[m.valid[pids]]
         pids = np.setdiff1d(pids, frame.points[frame.points >= 0], assume_unique=False)
@@ -416,11 +416,13 @@ class Tracker:
         dist = np.linalg.norm(PO, axis=1)
         cos = (PO * m.normal[pids]).sum(1) / np.maximum(dist, 1e-12)
         ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) \
-            & (uv[:, 1] < cam.height) & (dist >= 0.8 * m.dmin[pids]) & (dist <= 1.2 * m.dmax[pids]) & (cos >= 0.5)
+            & (uv[:, 1] < cam.height) & (dist >= mc.dist_margin_min * m.dmin[pids]) \
+            & (dist <= mc.dist_margin_max * m.dmax[pids]) & (cos >= mc.min_view_cos)
         pids, pc, uv, dist, cos = pids[ok], pc[ok], uv[ok], dist[ok], cos[ok]
         m.visible[pids] += 1
         level = m.predict_level(pids, dist)
-        radius = th * np.where(cos > 0.998, 2.5, 4.0) * self.setup.scales[level]
+        radius = th * np.where(cos > cfg.local_map_narrow_cos, cfg.local_map_radius_narrow, cfg.local_map_radius_wide) \
+            * self.setup.scales[level]
         ur = uv[:, 0] - self.setup.bf / pc[:, 2] if self.setup.sensor != "mono" else None
         q, k = search_projection(frame, uv, m.desc[pids], level, radius, level - 1, level, ur,
                                  max_dist=TH_HIGH, ratio=self.cfg.local_map_ratio)
@@ -437,7 +439,7 @@ class Tracker:
         recent = []
         ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
         if ref is not None and self.lost_since is not None and frame.index - self.lost_since <= self.cfg.recent_lost:
-            recent = [ref.kf_id] + ref.covisible(2)
+            recent = [ref.kf_id] + ref.covisible(self.cfg.recent_lost_covisible)
         for c in recent + [c for c in cands if c not in recent]:
             kf = m.kfs.get(c)
             if kf is None:
@@ -451,7 +453,7 @@ class Tracker:
             frame.points[frame.outlier] = -1
             frame.outlier[:] = False
             self.last_reloc_frame = frame.index
-            if self._track_local_map(frame, th=self.cfg.local_map_th * 5):
+            if self._track_local_map(frame, th=self.cfg.local_map_th * self.cfg.local_map_th_reloc):
                 self.log(f"frame {frame.index}: relocalized against keyframe {c}")
                 return True
         frame.points[:] = -1
@@ -517,7 +519,7 @@ class Tracker:
             if self.cfg.rgbd_new_points != "all":
                 order = free[np.argsort(frame.depth[free], kind="stable")]
                 close = frame.depth[order] < self.setup.th_depth
-                close[: min(100, len(close))] = True
+                close[: min(self.cfg.kf_min_new_points, len(close))] = True
                 free = np.sort(order[close])
             self._add_depth_points(kf, free)
             frame.points = kf.points.copy()
