@@ -224,9 +224,9 @@ def _as_legacy_v1(state: dict) -> dict:
         obj.__dict__.update(d[name], cfg=cfg)
         objs[name] = obj
     objs["tracker"].state = "ok"
-    outbox = d["outbox"]
+    outbox = d["outbox"].__getstate__()
     old = {"map": d["map"], "kfdb": d["kfdb"], **objs, "_traj": traj, "_lost": set(poses.lost),
-           "_kf_frames": dict(poses.kf_frames), "_pending": outbox._pending, "_pending_pids": outbox._chunks}
+           "_kf_frames": dict(poses.kf_frames), "_pending": outbox["pending"], "_pending_pids": outbox["chunks"]}
     return {"format": "segs.orb.v1", "blob": pickle.dumps(old)}
 
 

@@ -5,6 +5,11 @@ keyframe, runs local mapping and loop closing before returning. Threaded mode: l
 loop closing run in a background thread fed by a keyframe queue; tracking stays in the caller's
 thread; the map is shared under an RLock (bundle adjustment optimises outside it).
 
+The frontend builds and wires the parts (docs/architecture.md, `segs.slam`): `Tracker` (owns the
+per-frame pose record `FramePoses`), `KeyFrameQueue` (hands keyframes to mapping), `LocalMapper`,
+`LoopCloser`, sharing the `Map`, the keyframe database and the `MapOutbox`; each gets what it uses
+in its constructor and none of them sees this class.
+
 What the mapper receives (MapUpdate via poll): keyframes once local mapping processed them, the
 poses of the keyframes each local BA touched (all of them after a loop closure and at finish),
 map points once they survived the recent-point culling (tagged with their creating keyframe), and
