@@ -256,3 +256,29 @@ def test_tracking_state_enum_round_trips_checkpoint():
     assert len(old_fe.lost_frames()) == 0, run
     want, got = fe.trajectory(), old_fe.trajectory()
     assert got.keys() == want.keys() and all(np.array_equal(got[i], want[i]) for i in want)
+
+
+def test_frame_poses_follow_their_keyframe_and_read_the_legacy_tuples():
+    from segs.slam.frame_poses import FramePoses
+
+    kf_w2c = {0: np.eye(4), 1: np.eye(4)}
+    kf_w2c[1][:3, 3] = [1.0, 0, 0]
+    poses = FramePoses()
+    w2c = np.eye(4)
+    w2c[:3, 3] = [1.0, 2.0, 0]
+    poses.record(5, kf_w2c[1].copy(), 1, None, kf_w2c.get)  # frame 5 is keyframe 1
+    poses.record(6, w2c, None, 1, kf_w2c.get)  # relative to keyframe 1
+    poses.record(7, w2c, None, None, kf_w2c.get)  # no reference keyframe: absolute
+    poses.record(8, None, None, 1, kf_w2c.get)  # lost
+    assert poses.lost_frames() == [8] and poses.keyframe_frames([0, 1]) == {1: 5} and len(poses) == 3
+    moved = np.eye(4)
+    moved[:3, 3] = [3.0, 0, 0]
+    kf_w2c[1] = moved  # BA moved keyframe 1: its frames follow, the absolute one stays
+    traj = poses.trajectory(kf_w2c.get)
+    assert np.allclose(traj[5], moved) and np.allclose(traj[6][:3, 3], [3.0, 2.0, 0]) and np.allclose(traj[7], w2c)
+    assert poses.w2c(7, kf_w2c.get) is None  # no keyframe to recompose from
+    legacy = FramePoses.from_legacy({5: ("kf", 1), 6: ("rel", 1, poses.poses[6].rel), 7: ("abs", None, w2c)}, {8}, {1: 5})
+    assert legacy.lost == poses.lost and legacy.kf_frames == poses.kf_frames
+    assert all(np.array_equal(legacy.trajectory(kf_w2c.get)[i], traj[i]) for i in traj)
+    del kf_w2c[1]
+    assert sorted(poses.trajectory(kf_w2c.get)) == [7]  # a keyframe unknown to the map: its frames left out

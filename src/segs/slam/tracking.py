@@ -58,10 +58,10 @@ class MappingStatus(Protocol):
 class Tracker:
     """Tracks frames against `map` and writes each frame's pose record (`poses`, a FramePoses).
 
-    cfg / init_cfg / match_cfg: the tracking, init and matching groups; setup: the sensor; vocab / kfdb: relocalization
-    candidates (and cleared with the map); mapper: local mapping's services; outbox: receives the
-    monocular initial keyframe; mapping: whether local mapping takes keyframes; seed: RANSAC seeds;
-    log: event messages. New keyframes are returned by `track`; the caller hands them to mapping.
+    cfg / init_cfg / match_cfg: the tracking, init and matching groups; setup: the sensor;
+    vocab / kfdb: relocalization candidates (and cleared with the map); mapper: local mapping's
+    services; outbox: receives the monocular initial keyframe; mapping: whether local mapping takes
+    keyframes; seed: RANSAC seeds; log: event messages. New keyframes are returned by `track`; the caller hands them to mapping.
     """
 
     def __init__(self, cfg: TrackingConfig, init_cfg: InitConfig, match_cfg: MatchingConfig, setup: SensorSetup,
