@@ -213,11 +213,8 @@ class LocalMapper:
         return X, ok
 
     def _unproject(self, kf: KeyFrame, idx: np.ndarray) -> np.ndarray:
-        K = self.setup.K
-        d = kf.depth[idx]
-        uv = kf.kp.uv[idx]
-        pc = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d, (uv[:, 1] - K[1, 2]) / K[1, 1] * d, d], 1)
-        return transform(inv_se3(kf.w2c), pc)
+        """World points [N,3] of keypoints idx [N] of kf at their depth."""
+        return transform(inv_se3(kf.w2c), self.setup.backproject(kf.kp.uv[idx], kf.depth[idx]))
 
     # ------------------------------------------------------------------ fusion
     def _fuse(self, kf: KeyFrame) -> None:

@@ -188,7 +188,7 @@ class LoopCloser:
 
     def _kf_points(self, kf: KeyFrame, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame 3D of kf keypoints idx: its map point, else its depth -> ([N,3], ok [N])."""
-        m, K = self.map, self.setup.K
+        m = self.map
         pid = kf.points[idx]
         has = (pid >= 0)
         has[has] = m.valid[pid[has]]
@@ -196,8 +196,7 @@ class LoopCloser:
         X[has] = transform(kf.w2c, m.pos[pid[has]])
         d = kf.depth[idx]
         dep = ~has & (d > 0)
-        uv = kf.kp.uv[idx[dep]]
-        X[dep] = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d[dep], (uv[:, 1] - K[1, 2]) / K[1, 1] * d[dep], d[dep]], 1)
+        X[dep] = self.setup.backproject(kf.kp.uv[idx[dep]], d[dep])
         return X, has | dep
 
     def _ransac(self, X1, X2, uv1, uv2, s1, s2):

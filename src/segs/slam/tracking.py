@@ -251,10 +251,7 @@ class Tracker:
 
     def _add_depth_points(self, kf: KeyFrame, idx: np.ndarray) -> np.ndarray:
         """Back-project keypoints idx of kf (with depth) into new map points -> ids."""
-        K = self.setup.K
-        d = kf.depth[idx]
-        uv = kf.kp.uv[idx]
-        pc = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d, (uv[:, 1] - K[1, 2]) / K[1, 1] * d, d], 1)
+        pc = self.setup.backproject(kf.kp.uv[idx], kf.depth[idx])
         pw = transform(inv_se3(kf.w2c), pc)
         pids = self.map.add_points(pw, kf, idx)
         self.mapper.add_recent(pids)
