@@ -119,9 +119,9 @@ def test_empty_sequence(tmp_path, capsys):
 def test_camera_the_dataset_cannot_provide(tmp_path, capsys):
     root = _copy(tmp_path)
     (root / "depth.txt").unlink()
-    msg = _fails(tmp_path, capsys, f"data.root={root}", "camera=rgbd")
+    msg = _fails(tmp_path, capsys, f"data.root={root}", "sensor=rgbd")
     assert "rgbd" in msg and "depth" in msg
-    msg = _fails(tmp_path, capsys, "camera=stereo")
+    msg = _fails(tmp_path, capsys, "sensor=stereo")
     assert "stereo" in msg
 
 
@@ -178,7 +178,7 @@ def test_euroc_pair_without_baseline(tmp_path, capsys):
     micro = REPO_ROOT / "datasets" / "euroc_v101_micro" / "mav0"
     shutil.copytree(micro, mav)
     shutil.copy(mav / "cam0" / "sensor.yaml", mav / "cam1" / "sensor.yaml")  # cam1 where cam0 is
-    msg = _fails(tmp_path, capsys, f"data.root={mav.parent}", "data=euroc", "camera=stereo")
+    msg = _fails(tmp_path, capsys, f"data.root={mav.parent}", "data=euroc", "sensor=stereo")
     assert msg.startswith(f"error: {mav / 'cam1' / 'sensor.yaml'}: T_BS puts cam1 0.0000 m from cam0")
 
 

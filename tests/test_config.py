@@ -27,7 +27,7 @@ def test_experiment_composes(experiment, tmp_path):
     validate(cfg)
     assert cfg.model._target_.endswith("SegsModel")
     assert cfg.slam._target_ and cfg.data._target_
-    assert cfg.camera.sensor in ("mono", "stereo", "rgbd") and cfg.data.sensor == cfg.camera.sensor
+    assert cfg.sensor.mode in ("mono", "stereo", "rgbd") and cfg.data.sensor == cfg.sensor.mode
 
 
 @pytest.mark.parametrize("ablation", ABLATIONS)
@@ -38,8 +38,8 @@ def test_ablation_composes_and_instantiates_its_model(ablation, tmp_path):
 
 
 def test_camera_group_overrides_the_experiment(tmp_path):
-    cfg = compose(["+experiment=tum_rgbd", "camera=mono"], output_dir=str(tmp_path))
-    assert cfg.data.sensor == "mono" and cfg.camera.ate_align == "sim3"
+    cfg = compose(["+experiment=tum_rgbd", "sensor=mono"], output_dir=str(tmp_path))
+    assert cfg.data.sensor == "mono" and cfg.sensor.ate_align == "sim3"
 
 
 @pytest.mark.parametrize("group,option", [(g.name, p.stem) for g in sorted(CONF_DIR.iterdir()) if g.is_dir()
@@ -160,3 +160,9 @@ def test_cli_unknown_or_renamed_model_key_exits_2_in_one_line(override, needle, 
     lines = [line for line in r.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr
     assert not list(tmp_path.rglob("metrics.json"))
+
+
+def test_the_former_camera_group_points_to_sensor(tmp_path):
+    cfg = compose(["+experiment=tum_rgbd", "camera=mono"], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match="camera was renamed sensor: use sensor=mono"):
+        validate(cfg)

@@ -60,3 +60,17 @@ def test_loop_correction_moves_only_the_tagged_gaussians():
     assert m.correct_map({1: T}, None) == 2
     after = m.gs["means"].detach()
     assert torch.equal(after[:2], before[:2]) and torch.allclose(after[2:], before[2:] + T[:3, 3])
+
+
+def test_an_opacity_reset_interval_of_zero_never_resets():
+    for interval, resets in ((0, False), (100, True)):
+        torch.manual_seed(0)
+        m = build_model(model_node("plain_3dgs", densify={"opacity_reset_interval": interval, "from_step": 0}))
+        m.scene_extent = 1.0
+        m.add_points(torch.rand(8, 3) + torch.tensor([0.0, 0, 2]), torch.rand(8, 3), torch.zeros(8, dtype=torch.long), None)
+        with torch.no_grad():
+            m.gs["opacities"][:] = 2.0  # sigmoid 0.88: a reset caps it at 0.01
+        opt = make_adam(m.param_groups())
+        for step in range(1, 400):
+            m.maintain(step, opt)
+        assert bool((torch.sigmoid(m.gs["opacities"]) < 0.02).all()) is resets, interval

@@ -26,7 +26,7 @@ def fake_run(path: Path, overrides: list[str], metrics: dict | None = None, choi
     (hydra / "overrides.yaml").write_text(yaml.safe_dump(overrides))
     all_choices = {"experiment": "synthetic", "model": "segs", "slam": "orb", **(choices or {})}
     (hydra / "hydra.yaml").write_text(yaml.safe_dump({"hydra": {"runtime": {"choices": all_choices}}}))
-    data = {"_target_": "x", "sensor": "${camera.sensor}"} | ({"stress": stress} if stress else {})
+    data = {"_target_": "x", "sensor": "${sensor.mode}"} | ({"stress": stress} if stress else {})
     (hydra / "config.yaml").write_text(yaml.safe_dump({"data": data, "paths": {"output_dir": "${hydra:runtime.output_dir}"}}))
     if metrics is not None:
         (path / "metrics.json").write_text(json.dumps({**METRICS, **metrics}))

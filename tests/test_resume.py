@@ -80,7 +80,7 @@ def _refused(cfg, capsys) -> str:
     return err[0]
 
 
-@pytest.mark.parametrize("override,named", [("camera=mono", "camera.sensor"), ("data.n_frames=15", "sequence"),
+@pytest.mark.parametrize("override,named", [("sensor=mono", "sensor"), ("data.n_frames=15", "sequence"),
                                             ("data.width=128", "camera"), ("model=plain_3dgs", "model"),
                                             ("model.feature_dim=16", "model architecture"),
                                             ("eval.holdout_every=4", "eval.holdout_every")])  # fmt: skip

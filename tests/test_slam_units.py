@@ -199,11 +199,41 @@ def test_threaded_mode_and_checkpoint_round_trip():
     assert all(r.tracked for r in run.results)
 
 
-def test_tracking_state_enum_round_trips_checkpoint():
-    """The tracker state is a TrackingState after a checkpoint round trip, and a checkpoint written
-    before the Enum (plain "ok" string, configs without the named thresholds) loads and tracks on."""
+def _as_legacy_v1(state: dict) -> dict:
+    """A state in the layout of "segs.orb.v1" checkpoints (before FramePoses and MapOutbox): the
+    frontend's attributes, Tracker / LocalMapper / LoopCloser pickled whole with their config
+    (written before TrackingState and the named thresholds: the state a plain string, config
+    fields missing), frame poses as ("kf", id) / ("rel", id, rel) / ("abs", None, w2c) tuples."""
     import pickle
 
+    from segs.slam.local_mapping import LocalMapper
+    from segs.slam.loop_closing import LoopCloser
+    from segs.slam.tracking import Tracker
+
+    d = pickle.loads(state["blob"])
+    poses = d["tracker"].pop("poses")
+    traj = {i: ("abs", None, p.w2c) if p.kf_id is None else ("kf", p.kf_id) if p.rel is None else ("rel", p.kf_id, p.rel)
+            for i, p in poses.poses.items()}  # fmt: skip
+    tracking = C.TrackingConfig()
+    for name in ("min_pose_inliers", "min_matches_ref", "local_map_ratio", "kf_min_tracked"):
+        del tracking.__dict__[name]  # an old config: ignored (the loading frontend's own applies)
+    objs = {}
+    for name, cls, cfg in (("tracker", Tracker, tracking), ("mapper", LocalMapper, C.MappingConfig()),
+                           ("loop", LoopCloser, C.LoopConfig())):
+        obj = cls.__new__(cls)  # what unpickling an old component does
+        obj.__dict__.update(d[name], cfg=cfg)
+        objs[name] = obj
+    objs["tracker"].state = "ok"
+    outbox = d["outbox"].__getstate__()
+    old = {"map": d["map"], "kfdb": d["kfdb"], **objs, "_traj": traj, "_lost": set(poses.lost),
+           "_kf_frames": dict(poses.kf_frames), "_pending": outbox["pending"], "_pending_pids": outbox["chunks"]}
+    return {"format": "segs.orb.v1", "blob": pickle.dumps(old)}
+
+
+def test_tracking_state_enum_round_trips_checkpoint():
+    """The tracker state is a TrackingState after a checkpoint round trip, and a checkpoint written
+    before the Enum, FramePoses and MapOutbox ("segs.orb.v1") loads and tracks on exactly as the
+    frontend that wrote it does."""
     from segs.slam.tracking import TrackingState
 
     seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
@@ -211,17 +241,44 @@ def test_tracking_state_enum_round_trips_checkpoint():
     run_sequence(fe, seq, frames=range(6))
     assert fe.tracker.state is TrackingState.OK
     state = fe.state_dict()
+    assert state["format"] == "segs.orb.v2"
     new = OrbFrontend(seq.camera, "rgbd")
     new.load_state_dict(state)
     assert new.tracker.state is TrackingState.OK
-    old = pickle.loads(state["blob"])
-    old["tracker"].state = "ok"
-    for name in ("min_pose_inliers", "min_matches_ref", "local_map_ratio", "kf_min_tracked"):
-        old["tracker"].cfg.__dict__.pop(name)
     old_fe = OrbFrontend(seq.camera, "rgbd")
-    old_fe.load_state_dict({"format": "segs.orb.v1", "blob": pickle.dumps(old)})
+    old_fe.load_state_dict(_as_legacy_v1(state))
     assert old_fe.tracker.state is TrackingState.OK
     assert old_fe.tracker.cfg.min_pose_inliers == 10
+    assert old_fe.trajectory().keys() == fe.trajectory().keys() and old_fe.keyframe_frames() == fe.keyframe_frames()
+    run_sequence(fe, seq, frames=range(6, 12))
     run = run_sequence(old_fe, seq, frames=range(6, 12))
     assert old_fe.tracker.state is TrackingState.OK
     assert len(old_fe.lost_frames()) == 0, run
+    want, got = fe.trajectory(), old_fe.trajectory()
+    assert got.keys() == want.keys() and all(np.array_equal(got[i], want[i]) for i in want)
+
+
+def test_frame_poses_follow_their_keyframe_and_read_the_legacy_tuples():
+    from segs.slam.frame_poses import FramePoses
+
+    kf_w2c = {0: np.eye(4), 1: np.eye(4)}
+    kf_w2c[1][:3, 3] = [1.0, 0, 0]
+    poses = FramePoses()
+    w2c = np.eye(4)
+    w2c[:3, 3] = [1.0, 2.0, 0]
+    poses.record(5, kf_w2c[1].copy(), 1, None, kf_w2c.get)  # frame 5 is keyframe 1
+    poses.record(6, w2c, None, 1, kf_w2c.get)  # relative to keyframe 1
+    poses.record(7, w2c, None, None, kf_w2c.get)  # no reference keyframe: absolute
+    poses.record(8, None, None, 1, kf_w2c.get)  # lost
+    assert poses.lost_frames() == [8] and poses.keyframe_frames([0, 1]) == {1: 5} and len(poses) == 3
+    moved = np.eye(4)
+    moved[:3, 3] = [3.0, 0, 0]
+    kf_w2c[1] = moved  # BA moved keyframe 1: its frames follow, the absolute one stays
+    traj = poses.trajectory(kf_w2c.get)
+    assert np.allclose(traj[5], moved) and np.allclose(traj[6][:3, 3], [3.0, 2.0, 0]) and np.allclose(traj[7], w2c)
+    assert poses.w2c(7, kf_w2c.get) is None  # no keyframe to recompose from
+    legacy = FramePoses.from_legacy({5: ("kf", 1), 6: ("rel", 1, poses.poses[6].rel), 7: ("abs", None, w2c)}, {8}, {1: 5})
+    assert legacy.lost == poses.lost and legacy.kf_frames == poses.kf_frames
+    assert all(np.array_equal(legacy.trajectory(kf_w2c.get)[i], traj[i]) for i in traj)
+    del kf_w2c[1]
+    assert sorted(poses.trajectory(kf_w2c.get)) == [7]  # a keyframe unknown to the map: its frames left out

@@ -63,7 +63,7 @@ def test_stability_sweep_covers_every_stress_kind_with_rising_levels():
     cfg = compose(["+sweep=stability"] + SLAM, output_dir="/tmp")
     for stress in set(stresses):
         kind, level = stress.strip("{}").split(",")
-        check(kind.split(":")[1], float(level.split(":")[1]), cfg.camera.sensor)  # all valid for the experiment
+        check(kind.split(":")[1], float(level.split(":")[1]), cfg.sensor.mode)  # all valid for the experiment
 
 
 def _multirun(tmp_path: Path, *overrides: str, launcher: str, base: list[str] = TINY_SWEEP) -> subprocess.CompletedProcess:

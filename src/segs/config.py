@@ -55,6 +55,9 @@ def _number(v) -> bool:
 
 
 # (key, predicate, expectation) checked before anything runs; keys absent from a config are skipped
+# how the frontend runs beside mapping (segs.slam.process; conf/train.yaml slam_mode)
+SLAM_MODES = ("interleaved", "process", "live")
+
 _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("trainer.max_steps", lambda v: isinstance(v, int) and v > 0, "an integer > 0"),
     ("trainer.precision", lambda v: str(v) in ("32", "32-true"), "32 (the rasterizers and the mapper work in float32)"),
@@ -63,16 +66,18 @@ _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("eval.holdout_every", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
     ("eval.save_renders", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
     ("eval.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
-    ("camera.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
+    ("sensor.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
     ("eval.lpips_weights", lambda v: v is None or (isinstance(v, str) and Path(v).expanduser().is_file()),
      "null or an existing AlexNet weights file (alexnet-owt-7be5be79.pth)"),
     ("eval.active_opacity", lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
     ("data.downscale", lambda v: _number(v) and v >= 1, "a number >= 1"),
-    ("camera.sensor", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
+    ("sensor.mode", lambda v: v in ("mono", "stereo", "rgbd"), "one of mono, stereo, rgbd"),
     ("raster.backend", lambda v: v in ("auto", "torch", "cpu", "cuda"), "one of auto, torch, cpu, cuda"),
     ("raster.near", lambda v: _number(v) and v > 0, "a number > 0 (metres)"),
     ("callbacks.slam_bridge.frames_per_step", lambda v: v is None or (_number(v) and v > 0), "null or a number > 0"),
     ("callbacks.slam_bridge.feed_until", lambda v: _number(v) and 0 < v <= 1, "a fraction in (0, 1]"),
+    ("slam_mode", lambda v: v in SLAM_MODES, f"one of {', '.join(SLAM_MODES)}"),
+    ("slam_rate", lambda v: _number(v) and v > 0, "a number > 0 (1 = real time)"),
     ("callbacks.slam_bridge.min_initial_keyframes", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
 ]
 
@@ -129,6 +134,9 @@ def validate(cfg: DictConfig) -> None:
     (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
     the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
     """
+    renamed = OmegaConf.select(cfg, "camera.renamed_to", default=None)
+    if renamed is not None:
+        raise ConfigError(f"config group camera was renamed sensor: use {renamed}")
     _check_finite(cfg)
     for key, ok, expected in _CHECKS:
         value = OmegaConf.select(cfg, key, default="__absent__")
@@ -185,3 +193,22 @@ def user_errors_exit(code: int = 2) -> Iterator[None]:
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"error: {msg}", file=sys.stderr)
         raise SystemExit(code) from None
+
+
+def make_frontend(cfg: DictConfig, sequence):
+    """The configured frontend for sequence: built here (slam_mode=interleaved) or, for
+    slam_mode=process | live, a segs.slam.process.FrontendProcess that builds it in a child
+    process (it is also built here once, so a bad slam config fails before the child starts)."""
+    import functools
+
+    mode = OmegaConf.select(cfg, "slam_mode", default="interleaved")
+    extra = {}
+    if mode == "live" and "threaded" in cfg.slam:  # a camera does not wait for local mapping
+        extra["threaded"] = True
+    factory = functools.partial(instantiate(cfg.slam), camera=sequence.camera, sensor=sequence.sensor, **extra)
+    frontend = factory()
+    if mode == "interleaved":
+        return frontend
+    from segs.slam.process import FrontendProcess
+
+    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0))

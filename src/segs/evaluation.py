@@ -123,6 +123,8 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
         "tracked_fraction": len(trajectory) / max(len(sequence), 1),
         "lost_frames": len(lost),
         "lost_ranges": lost_ranges(lost),
+        # slam_mode=live: frames skipped because tracking was behind the camera (never tracked)
+        "frames_dropped_live": len(frontend.dropped_frames()) if hasattr(frontend, "dropped_frames") else 0,
         "keyframes": len(frontend.keyframe_frames()),
         "training_views": counts.training_views,
         "held_out_points": bridge.held_out_points,

@@ -6,7 +6,7 @@ Same configs as `segs.train`: the sequence (`data`) is fed frame by frame to the
 - trajectory.txt: the estimated camera-to-world poses of the tracked frames (TUM format),
 - keyframes.txt: `kf_id frame_index timestamp` of the keyframes still in the map,
 - tracking.json: ATE RMSE (evo; SE(3) for RGB-D / stereo, Sim(3) for monocular, from
-  `camera.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics.
+  `sensor.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics.
 
 Run folder: outputs/track/runs/<time> (task_name=track unless given).
 """
@@ -22,9 +22,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from segs.config import instantiate, make_sequence, user_errors_exit, validate
+from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
-from segs.slam.runner import run_sequence
+from segs.slam.process import FrontendProcess
+from segs.slam.runner import RunResult, run_sequence
 from segs.trajectory import ate, estimated_c2w, write_tum
 
 log = logging.getLogger("segs.track")
@@ -55,10 +56,10 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     sequence = make_sequence(cfg.data)
     if len(sequence) == 0:
         raise DataError(f"data: the sequence at {cfg.data.get('root', '?')} has no frames")
-    frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
-    align = OmegaConf.select(cfg, "camera.ate_align", default=None) or ("sim3" if sequence.sensor == "mono" else "se3")
+    frontend = make_frontend(cfg, sequence)
+    align = OmegaConf.select(cfg, "sensor.ate_align", default=None) or ("sim3" if sequence.sensor == "mono" else "se3")
     if align not in ("se3", "sim3", "none"):
-        raise ConfigError(f"camera.ate_align={align!r} is not one of se3, sim3, none")
+        raise ConfigError(f"sensor.ate_align={align!r} is not one of se3, sim3, none")
 
     bar = None
     if progress:
@@ -66,7 +67,13 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
 
         bar = tqdm(total=len(sequence), desc="tracking", leave=False, disable=not sys.stderr.isatty())
     t0 = time.perf_counter()
-    result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None)
+    if isinstance(frontend, FrontendProcess):
+        try:
+            result = _run_process(frontend, bar)
+        finally:
+            frontend.close()
+    else:
+        result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None)
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
@@ -86,6 +93,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     ate_result = ate(sequence.timestamps, traj, sequence.gt_poses, align=align)
     stats = frontend.stats() if hasattr(frontend, "stats") else {}
     n = len(sequence)
+    processed = frontend.frames_done if isinstance(frontend, FrontendProcess) else n  # live: less
     metrics = {
         "sequence": getattr(sequence, "name", ""),
         "sensor": sequence.sensor,
@@ -95,11 +103,14 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         "tracked_fraction": len(traj) / n,
         "lost_frames": len(lost),
         "lost_ranges": lost_ranges(lost),
+        "slam_mode": OmegaConf.select(cfg, "slam_mode", default="interleaved"),
+        # slam_mode=live: frames skipped because tracking was behind the camera (never tracked)
+        "frames_dropped_live": len(frontend.dropped_frames()) if isinstance(frontend, FrontendProcess) else 0,
         "keyframes": len(kfs),
         "ate_rmse_m": ate_result["rmse"],
         "ate": ate_result,
         # process(): tracking and, single-threaded, local mapping and loop closing
-        "tracking_fps": n / result.process_s if result.process_s > 0 else None,
+        "tracking_fps": processed / result.process_s if result.process_s > 0 else None,
         "process_s": result.process_s,
         "finish_s": result.finish_s,
         "wall_s": wall,
@@ -115,10 +126,23 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         f"  ATE RMSE ({align}) {'n/a' if rmse is None else f'{rmse * 100:.2f} cm'}"
         f" over {ate_result['pairs']} frames\n"
         f"  {metrics['tracking_fps'] or 0:.1f} frames/s in process() ({result.process_s:.1f} s), "
-        f"finish {result.finish_s:.1f} s\n"
-        f"  trajectory.txt (TUM), keyframes.txt, tracking.json"
+        f"finish {result.finish_s:.1f} s, wall {wall:.1f} s"
+        + (f", {metrics['frames_dropped_live']} frames dropped (live)" if metrics["slam_mode"] == "live" else "") + "\n"
+        "  trajectory.txt (TUM), keyframes.txt, tracking.json"
     )
     return metrics
+
+
+def _run_process(frontend: FrontendProcess, bar) -> RunResult:
+    """Wait for a frontend process to track the sequence; process_s is the child's own time
+    in process() (its throughput), finish_s is not separated from it (0)."""
+    result = RunResult()
+    while not frontend.done():
+        result.update = result.update.merge(frontend.poll(timeout=0.2))
+        if bar is not None:
+            bar.update(frontend.cursor - bar.n)
+    result.process_s = frontend.process_seconds
+    return result
 
 
 @hydra.main(config_path="../../conf", config_name="train", version_base="1.3")

@@ -24,11 +24,12 @@ from torch.utils.data import DataLoader, Dataset
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
 from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
-from segs.config import instantiate, make_sequence, user_errors_exit, validate
+from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import DataError, TrackingFailed
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
+from segs.slam.process import FrontendProcess
 
 log = logging.getLogger("segs.train")
 
@@ -57,7 +58,7 @@ def build(cfg: DictConfig, session_start: float | None = None):
     identity = fingerprint(cfg, sequence)
     if record is not None:
         check_resume(cfg.ckpt_path, record, identity)
-    frontend = instantiate(cfg.slam)(camera=sequence.camera, sensor=sequence.sensor)
+    frontend = make_frontend(cfg, sequence)
     module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
     bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(sequence=sequence, frontend=frontend)
     callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
@@ -110,6 +111,9 @@ def run(cfg: DictConfig) -> dict:
             else "nothing was saved since the last checkpoint"  # fmt: skip
         print(f"\nsegs: stopped by {err}; no metrics.json written; {where}", file=sys.stderr)
         raise SystemExit(err.code) from None
+    finally:
+        if isinstance(frontend, FrontendProcess):
+            frontend.close()
 
 
 def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper, t_start, saved: dict) -> dict:

@@ -21,6 +21,7 @@ from segs.data.frame import Frame, Sequence
 from segs.errors import TrackingFailed
 from segs.modules.contract import GaussianMapper, TrainingView, to_uint8
 from segs.slam.base import Frontend, MapUpdate
+from segs.slam.process import FrontendProcess
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,10 @@ class SlamBridge(L.Callback):
     min_initial_keyframes: mapping starts when the frontend has made this many keyframes.
     holdout_every: frames with index % n == 0 never become training views, and the map points
         their keyframes create never reach the mapper (counted in held_out_points); 0 = off.
+
+    With a FrontendProcess (slam_mode=process | live) the frontend reads and tracks the frames in
+    its own process, beside training: the bridge only polls its MapUpdates before each step
+    (feed_until / frames_per_step do not apply), and waits for it at the end of training.
     """
 
     def __init__(self, sequence: Sequence, frontend: Frontend, feed_until: float = 0.2,
@@ -57,6 +62,7 @@ class SlamBridge(L.Callback):
         self.processed = 0
         self.held_out_points = 0  # SLAM points created by held-out keyframes, never given to the mapper
         self._watch = None  # memory check called while tracking: where -> None (raises LimitError)
+        self.in_process = isinstance(frontend, FrontendProcess)
 
     # -- Lightning hooks ------------------------------------------------------------------------
     def on_train_start(self, trainer, pl_module: GaussianMapper) -> None:
@@ -64,6 +70,9 @@ class SlamBridge(L.Callback):
         if guard is not None:  # nothing trained before mapping starts (after fit: final.ckpt exists)
             self._watch = lambda where: guard.check(trainer, where, save=False)
         if self._restored:
+            return
+        if self.in_process:
+            self._start_process(pl_module)
             return
         bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
         # also wait for the first map points: the ORB frontend hands them over once they have
@@ -80,6 +89,22 @@ class SlamBridge(L.Callback):
         if self.frames_per_step is None:
             steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
             self.frames_per_step = (len(self.sequence) - self.cursor) / steps
+        self._check_mappable(pl_module)
+
+    def _start_process(self, pl_module: GaussianMapper) -> None:
+        """Start the frontend process and wait for the initial keyframes and points."""
+        fe: FrontendProcess = self.frontend
+        bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
+        while not fe.done() and (len(fe.keyframe_frames()) < self.min_initial_keyframes or self._empty(pl_module.counts())):
+            self._push(fe.poll(timeout=0.1), pl_module)
+            bar.update(fe.cursor - bar.n)
+        bar.close()
+        if fe.done():
+            self._push(self._finish(), pl_module)
+        self._check_mappable(pl_module)
+
+    def _check_mappable(self, pl_module: GaussianMapper) -> None:
+        """Raise TrackingFailed when the frames so far gave nothing to train on."""
         name, lost = getattr(self.sequence, "name", "the sequence"), len(self.frontend.lost_frames())
         counts = pl_module.counts()
         if counts.training_views == 0:
@@ -96,6 +121,13 @@ class SlamBridge(L.Callback):
         return counts.training_views == 0 or counts.gaussians == 0
 
     def on_train_batch_start(self, trainer, pl_module: GaussianMapper, batch, batch_idx) -> None:
+        if self.in_process:
+            update = self.frontend.poll()
+            self.cursor = self.frontend.cursor
+            if self.frontend.done() and not self.finished:
+                update = update.merge(self._finish())
+            self._push(update, pl_module)
+            return
         self.credit += self.frames_per_step
         update = MapUpdate()
         while self.credit >= 1.0 and self.cursor < len(self.sequence):
@@ -136,6 +168,11 @@ class SlamBridge(L.Callback):
         if self.finished:
             return
         bar = tqdm(total=len(self.sequence) - self.cursor, desc="tracking the rest", disable=not self.progress, leave=False)
+        if self.in_process:  # its updates are superseded by the final poses, as below
+            while not self.frontend.done():
+                self.frontend.poll(timeout=0.1)
+                bar.update(self.frontend.cursor - self.cursor)
+                self.cursor = self.frontend.cursor
         while self.cursor < len(self.sequence):
             self._feed_one()
             bar.update(1)
@@ -208,6 +245,9 @@ class SlamBridge(L.Callback):
 
     def tracking_fps(self) -> float | None:
         """Frames per second of frontend.process (tracking and, single-threaded, local mapping)."""
+        if self.in_process:  # the child's own time in process()
+            fe = self.frontend
+            return fe.frames_done / fe.process_seconds if fe.process_seconds > 0 else None
         return self.processed / self.process_seconds if self.process_seconds > 0 else None
 
     # -- results --------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ def fingerprint(cfg: DictConfig, sequence) -> dict:
     stress = OmegaConf.select(cfg, "data.stress", default=None)
     return {
         "sequence": f"{getattr(sequence, 'name', '?')} ({len(sequence)} frames)",
-        "camera.sensor": str(sequence.sensor),
+        "sensor": str(sequence.sensor),
         "camera": f"{cam.width}x{cam.height} fx={cam.fx:.6g} fy={cam.fy:.6g} cx={cam.cx:.6g} cy={cam.cy:.6g} "
                   f"baseline={cam.baseline}",
         "data.stress": None if not stress else str(OmegaConf.to_container(stress, resolve=True)),
@@ -65,7 +65,8 @@ def read_checkpoint(path: str | None) -> dict | None:
 
 def check_resume(path: str, record: dict, current: dict) -> None:
     """ConfigError naming the first fingerprint entry that differs between checkpoint and run."""
-    saved = record.get("fingerprint") or {}
+    # checkpoints written before the config group camera was renamed sensor
+    saved = {("sensor" if k == "camera.sensor" else k): v for k, v in (record.get("fingerprint") or {}).items()}
     for key, value in current.items():
         if key in saved and saved[key] != value:
             raise ConfigError(f"ckpt_path={path} was written by a run with {key} {saved[key]!r}, this run has "

@@ -137,12 +137,14 @@ class PlainGaussians(SceneModel):
     # -- densification --------------------------------------------------------------------------
     def maintain(self, step, optimizer) -> dict[str, float]:
         d = self.densify
-        start, until, reset = self._at(d.from_step), self._at(d.until_step), self._at(d.opacity_reset_interval)
+        start, until = self._at(d.from_step), self._at(d.until_step)
+        # 0 disables the opacity reset (and the screen-size pruning that follows the first one)
+        reset = self._at(d.opacity_reset_interval) if d.opacity_reset_interval > 0 else 0
         # as SEGS's growth: densify every `interval` steps (statistics of ~100 views) unless scaled
         interval = self._at(d.interval) if d.scale_interval else int(d.interval)
         out: dict[str, float] = {}
         if start <= step < until and step % interval == 0 and len(self.gs):
-            out = d.adjust(self.gs, optimizer, self.scene_extent, self.max_gaussians, prune_big=step > reset)
+            out = d.adjust(self.gs, optimizer, self.scene_extent, self.max_gaussians, prune_big=0 < reset < step)
         if reset > 0 and start <= step < until and step % reset == 0 and len(self.gs):
             capped = torch.minimum(self.gs.opacities.detach(), torch.full_like(self.gs.opacities, _logit(0.01)))
             self.gs.assign("opacities", capped, optimizer, reset_state=True)

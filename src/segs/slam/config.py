@@ -29,8 +29,16 @@ class TrackingConfig:
     min_init_points: int = 500  # keypoints with depth to start an RGB-D / stereo map (<= n_features/3)
     window_motion: float = 15.0  # projection radius from the last frame, mono (x scale)
     window_motion_stereo: float = 7.0  # idem, stereo / RGB-D
+    window_retry_factor: float = 2.0  # too few matches: searched again with this x the window (ORB-SLAM: 2)
+    window_no_velocity_factor: float = 2.0  # no velocity (after a relocalization): x the window
     local_map_th: float = 1.0  # local-map projection radius factor (x 2.5 or 4 x scale)
+    local_map_th_rgbd: float = 3.0  # RGB-D: local_map_th x this (ORB-SLAM: th = 3)
+    local_map_th_reloc: float = 5.0  # the relocalized frame and the next: x this (ORB-SLAM: th = 5)
+    local_map_narrow_cos: float = 0.998  # viewing cosine above this: the narrow radius (RadiusByViewingCos)
+    local_map_radius_narrow: float = 2.5  # x local_map_th x level scale, nearly frontal views
+    local_map_radius_wide: float = 4.0  # idem, the other views
     local_kfs: int = 40  # keyframes in the local map
+    local_map_covisible: int = 10  # best covisible keyframes of each that join the local map (ORB-SLAM: 10)
     min_matches_motion: int = 20
     min_inliers: int = 30  # local-map inliers to call a frame tracked
     min_inliers_reloc: int = 50  # idem, during the frames after a relocalization
@@ -38,6 +46,7 @@ class TrackingConfig:
     local_map_ratio: float = 0.8  # nearest / second-nearest descriptor ratio of local-map projection
     ref_match_ratio: float = 0.7  # descriptor ratio matching the reference keyframe (ORB-SLAM: 0.7)
     pnp_match_ratio: float = 0.9  # looser ratio of the matches fed to PnP RANSAC (fallback, relocalization)
+    pnp_reproj_factor: float = 2.0  # PnP RANSAC inlier threshold: this x sqrt(chi2 2 dof 95 %) pixels
     min_matches_ref: int = 15  # matches with the reference keyframe needed to try its pose (ORB-SLAM: 15)
     min_pose_inliers: int = 10  # inliers of a motion / reference / PnP pose to accept it (ORB-SLAM: 10)
     kf_max_gap: int = 15  # a keyframe at least every N frames (if c2 holds); authors: 15
@@ -52,9 +61,11 @@ class TrackingConfig:
     kf_close_tracked: int = 100  # stereo / RGB-D: need close points if fewer tracked ...
     kf_close_untracked: int = 70  # ... and more than this untracked
     rgbd_new_points: str = "all"  # "all": every unmatched keypoint with depth; "close": < ThDepth
+    kf_min_new_points: int = 100  # "close": at least this many of the nearest anyway (ORB-SLAM: 100)
     reloc_candidates: int = 10
     reloc_min_matches: int = 15
     recent_lost: int = 30  # lost for at most this many frames: try the last reference keyframe first
+    recent_lost_covisible: int = 2  # ... and this many of its best covisible keyframes
     restart_after_lost: int = 10  # stereo / RGB-D: frames lost before a new map segment anchored
     # at the last tracked pose (0: never; monocular never restarts: its scale would be unrelated)
 
@@ -66,24 +77,32 @@ class InitConfig:
     min_triangulated: int = 50
     max_frames: int = 60  # frames a reference may wait for its partner before it is replaced
     homography_ratio: float = 0.40  # R_H = S_H / (S_H + S_F) above this -> homography
+    ba_iterations: int = 20  # bundle adjustment of the two-view map (ORB-SLAM: 20)
 
 
 @dataclass
 class MappingConfig:
     triangulate_neighbors: int = 10  # covisible keyframes to triangulate with (mono: x2)
     fuse_neighbors: int = 10
+    fuse_second_neighbors: int = 5  # ... and this many best covisible of each (ORB-SLAM: 5)
+    fuse_th: float = 3.0  # projection radius (x level scale) of point fusion (ORB-SLAM: 3)
     triangulate_ratio: float = 0.6
     scale_consistency: float = 1.5  # distance ratio vs octave ratio within this x scale_factor (ratioFactor)
     min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
     ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 10  # keyframes held fixed around the window
-    ba_iterations: tuple = (5, 10)  # LM iterations before / after removing outliers
+    ba_iterations: tuple = (4, 0)  # LM iterations before / after removing outliers (0: one pass)
     cull_points: bool = True
     min_found_ratio: float = 0.25
+    recent_cull_age: int = 2  # keyframes after its creation: a point with few observers is culled ...
+    recent_min_obs: int = 3  # ... at most this many (stereo / RGB-D; ORB-SLAM: 3) ...
+    recent_min_obs_mono: int = 2  # ... monocular (ORB-SLAM: 2)
+    recent_mature_age: int = 3  # keyframes after which a surviving point is mature (reaches the mapper)
     cull_keyframes: bool = True
     redundancy: float = 0.9  # keyframe culled if this share of its points is seen by >=3 others
     cull_window: int = 30  # only among its best covisible keyframes
+    redundant_observers: int = 3  # "seen by others": at least this many at the same or a finer scale
 
 
 @dataclass
@@ -96,6 +115,9 @@ class LoopConfig:
     match_ratio: float = 0.75  # their nearest / second-nearest descriptor ratio
     min_inliers: int = 20  # RANSAC inliers of the similarity
     min_total: int = 40  # matches after guided search to accept the loop
+    ransac_iterations: int = 300  # RANSAC of the loop similarity (minimal sets of 3)
+    guided_search_th: float = 10.0  # projection radius (x level scale) of the guided search (ORB-SLAM: 10)
+    fuse_th: float = 4.0  # projection radius fusing the loop's points into its neighbours (ORB-SLAM: 4)
     covis_edges: int = 100  # essential graph: covisibility edges with this weight
     pose_graph_iterations: int = 20
     global_ba: bool = True
@@ -104,8 +126,17 @@ class LoopConfig:
     min_kfs_since_loop: int = 10  # keyframes after a closed loop before the next search
 
 
+@dataclass
+class MatchingConfig:
+    """Projection searches of map points into frames and keyframes (ORB-SLAM's isInFrustum / Fuse)."""
+
+    dist_margin_min: float = 0.8  # searched from distances >= this x its scale-invariance minimum
+    dist_margin_max: float = 1.2  # ... and <= this x its maximum (ORB-SLAM: 0.8 / 1.2)
+    min_view_cos: float = 0.5  # viewing ray vs the point's mean viewing direction: cosine >= this
+
+
 GROUPS = {"features": FeatureConfig, "tracking": TrackingConfig, "init": InitConfig,
-          "mapping": MappingConfig, "loop": LoopConfig}
+          "mapping": MappingConfig, "loop": LoopConfig, "matching": MatchingConfig}
 
 
 def build(cls, values: Mapping[str, Any] | None, where: str):

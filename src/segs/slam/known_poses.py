@@ -42,7 +42,7 @@ class KnownPosesFrontend(Frontend):
         if n_features < 1:
             raise ConfigError(f"slam.n_features={n_features} is out of range: expected >= 1")
         if sensor not in ("mono", "stereo", "rgbd"):
-            raise ConfigError(f"camera.sensor={sensor!r}: expected mono, stereo or rgbd")
+            raise ConfigError(f"sensor.mode={sensor!r}: expected mono, stereo or rgbd")
         if point_source not in ("orb", "grid") or (point_source == "grid" and sensor == "mono"):
             raise ConfigError(f"slam.point_source={point_source!r}: expected orb, or grid with an rgbd / stereo camera")
         if grid_stride < 1:

@@ -9,46 +9,77 @@ keyframe culling. Points become "mature" (and reach the mapper) once they surviv
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Callable
 
 import numpy as np
 
 from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
-from segs.slam.map import KeyFrame
+from segs.slam.config import MappingConfig, MatchingConfig
+from segs.slam.map import KeyFrame, Map
 from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
 from segs.slam.features import hamming_pairs
-from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, Observations, reproj_chi2
-
-if TYPE_CHECKING:
-    from segs.slam.orb import OrbFrontend as SlamSystem
+from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, BundleAdjuster, Observations, reproj_chi2
+from segs.slam.outbox import MapOutbox
+from segs.slam.sensor import SensorSetup
+from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
 
 
 class LocalMapper:
-    def __init__(self, system: "SlamSystem"):
-        self.sys = system
-        self.cfg = system.cfg.mapping
-        self.recent: list[int] = []
-        self.ba_times: list[float] = []
+    """Local mapping of one keyframe at a time on `map` (see the module docstring).
+
+    cfg / match_cfg: the mapping and matching groups; setup: the sensor; vocab / kfdb: bag of words of each new keyframe
+    into the keyframe database; ba: the bundle adjuster (`optimize.BundleAdjuster` or its child
+    process twin, `run_two_pass`); outbox: receives the mature points and the poses BA touched;
+    log: event messages.
+    """
+
+    def __init__(self, cfg: MappingConfig, match_cfg: MatchingConfig, setup: SensorSetup, map_: Map,
+                 vocab: Vocabulary, kfdb: KeyFrameDatabase, ba: BundleAdjuster, outbox: MapOutbox,
+                 log: Callable[[str], None]):
+        self.cfg, self.match_cfg, self.setup, self.map, self.vocab, self.kfdb = cfg, match_cfg, setup, map_, vocab, kfdb
+        self.ba, self.outbox, self.log = ba, outbox, log
+        self.recent: list[int] = []  # young points (ids), culled or mature after a few keyframes
+        self.ba_times: list[float] = []  # seconds per bundle adjustment
         self.cos_parallax = float(np.cos(np.radians(self.cfg.min_parallax_deg)))
 
-    def __getstate__(self) -> dict:
-        """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
-        state = dict(self.__dict__)
-        state.pop("sys", None)
-        return state
+    _STATE = ("recent", "ba_times")
+
+    def state_dict(self) -> dict:
+        """What a checkpoint keeps (the collaborators come from the constructor)."""
+        return {k: getattr(self, k) for k in self._STATE}
+
+    def load_state_dict(self, state: dict) -> None:
+        for k in self._STATE:
+            if k in state:
+                setattr(self, k, state[k])
 
     def add_recent(self, pids: np.ndarray) -> None:
         self.recent.extend(int(p) for p in pids)
 
+    def clear_recent(self) -> None:
+        """The map was cleared (a rejected monocular initial map)."""
+        self.recent = []
+
     def register_initial(self, kfs: list[KeyFrame], pids: np.ndarray) -> None:
         """Monocular initial map: keyframes already connected; words + database only."""
         for kf in kfs:
-            self.sys.index_keyframe(kf)
+            self._index_keyframe(kf)
         self.add_recent(pids)
+
+    def _index_keyframe(self, kf: KeyFrame) -> None:
+        """The keyframe's bag of words into the keyframe database (once)."""
+        if kf.kf_id not in self.kfdb.bows:
+            self.kfdb.add(kf.kf_id, self.vocab.bow_of(kf.kp.desc))
+
+    def _emit_points(self, pids: np.ndarray) -> None:
+        """Points pids reach the mapper (those valid and not handed out before)."""
+        chunk = self.map.take_new_points(pids)
+        if chunk is not None:
+            self.outbox.add_points(*chunk)
 
     # ------------------------------------------------------------------ main step
     def process(self, kf: KeyFrame) -> None:
-        m = self.sys.map
+        m = self.map
         with m.lock:
             if kf.bad:
                 return
@@ -63,7 +94,7 @@ class LocalMapper:
                 self._cull_keyframes(kf)
 
     def _process_new(self, kf: KeyFrame) -> None:
-        m = self.sys.map
+        m = self.map
         idx = np.flatnonzero(kf.points >= 0)
         for i, p in zip(idx.tolist(), kf.points[idx].tolist()):
             live = m.live(p)
@@ -79,11 +110,12 @@ class LocalMapper:
         m.update_geometry(pids)
         m.update_descriptors(pids)
         m.update_connections(kf)
-        self.sys.index_keyframe(kf)
+        self._index_keyframe(kf)
 
     def _cull_recent(self, kf: KeyFrame) -> None:
-        m = self.sys.map
-        th_obs = 2 if self.sys.sensor == "mono" else 3
+        m = self.map
+        cfg = self.cfg
+        th_obs = cfg.recent_min_obs_mono if self.setup.sensor == "mono" else cfg.recent_min_obs
         keep, mature = [], []
         for p in self.recent:
             if not m.valid[p]:
@@ -91,29 +123,29 @@ class LocalMapper:
             age = kf.kf_id - m.first_kf[p]
             if m.found[p] / max(m.visible[p], 1) < self.cfg.min_found_ratio:
                 m.set_point_bad(p)
-            elif age >= 2 and m.n_obs[p] <= th_obs:
+            elif age >= cfg.recent_cull_age and m.n_obs[p] <= th_obs:
                 m.set_point_bad(p)
-            elif age >= 3:
+            elif age >= cfg.recent_mature_age:
                 mature.append(p)
             else:
                 keep.append(p)
         self.recent = keep
-        self.sys.emit_points(np.array(mature, np.int64))
+        self._emit_points(np.array(mature, np.int64))
 
     def flush_recent(self) -> None:
         """End of sequence: every surviving recent point is emitted."""
-        m = self.sys.map
-        self.sys.emit_points(np.array([p for p in self.recent if m.valid[p]], np.int64))
+        m = self.map
+        self._emit_points(np.array([p for p in self.recent if m.valid[p]], np.int64))
         self.recent = []
 
     # ------------------------------------------------------------------ triangulation
     def _triangulate(self, kf: KeyFrame) -> None:
-        m, sysm = self.sys.map, self.sys
-        mono = sysm.sensor == "mono"
+        m, su = self.map, self.setup
+        mono = su.sensor == "mono"
         nn = self.cfg.triangulate_neighbors * (2 if mono else 1)
-        K, bf = sysm.K, sysm.bf
+        K, bf = su.K, su.bf
         base_stereo = bf / K[0, 0]
-        ratio_factor = self.cfg.scale_consistency * sysm.scale_factor
+        ratio_factor = self.cfg.scale_consistency * su.scale_factor
         P1 = K @ kf.w2c[:3]
         C1 = kf.center
         partners = []
@@ -137,7 +169,7 @@ class LocalMapper:
         for _, n in sorted(partners, key=lambda t: t[0]) if mono else partners:
             kf2 = m.kfs[n]
             F = fundamental(kf.w2c, kf2.w2c, K)
-            i1, i2 = match_for_triangulation(kf, kf2, F, sysm.sigma2, ratio=self.cfg.triangulate_ratio)
+            i1, i2 = match_for_triangulation(kf, kf2, F, su.sigma2, ratio=self.cfg.triangulate_ratio)
             if len(i1) == 0:
                 continue
             X, ok = self._triangulate_pairs(kf, kf2, i1, i2, P1, base_stereo, ratio_factor)
@@ -150,8 +182,8 @@ class LocalMapper:
                 self.add_recent(pids)
 
     def _triangulate_pairs(self, kf1, kf2, i1, i2, P1, base_stereo, ratio_factor):
-        sysm = self.sys
-        K, Ki = sysm.K, np.linalg.inv(sysm.K)
+        su = self.setup
+        K, Ki = su.K, np.linalg.inv(su.K)
         x1, x2 = kf1.kp.uv[i1], kf2.kp.uv[i2]
         R1w, R2w = kf1.w2c[:3, :3], kf2.w2c[:3, :3]
         r1 = (np.c_[x1, np.ones(len(x1))] @ Ki.T) @ R1w  # world rays (unnormalised)
@@ -170,32 +202,29 @@ class LocalMapper:
         X[use2] = self._unproject(kf2, i2[use2])
         ok = (tri | use1 | use2) & np.isfinite(X).all(1)
         for kf, idx in ((kf1, i1), (kf2, i2)):
-            chi2, th, z = reproj_chi2(kf.w2c, X, kf.kp.uv[idx], kf.ur[idx], 1.0 / sysm.sigma2[kf.kp.octave[idx]],
-                                      K, sysm.bf, sysm.ur_sigma)
+            chi2, th, z = reproj_chi2(kf.w2c, X, kf.kp.uv[idx], kf.ur[idx], 1.0 / su.sigma2[kf.kp.octave[idx]],
+                                      K, su.bf, su.ur_sigma)
             ok &= (z > 0) & (chi2 < th)
         dist1 = np.linalg.norm(X - kf1.center, axis=1)
         dist2 = np.linalg.norm(X - kf2.center, axis=1)
         ratio_dist = dist2 / np.maximum(dist1, 1e-12)
-        ratio_oct = sysm.scales[kf1.kp.octave[i1]] / sysm.scales[kf2.kp.octave[i2]]
+        ratio_oct = su.scales[kf1.kp.octave[i1]] / su.scales[kf2.kp.octave[i2]]
         ok &= (dist1 > 0) & (dist2 > 0) & (ratio_dist * ratio_factor >= ratio_oct) & (ratio_dist <= ratio_oct * ratio_factor)
         return X, ok
 
     def _unproject(self, kf: KeyFrame, idx: np.ndarray) -> np.ndarray:
-        K = self.sys.K
-        d = kf.depth[idx]
-        uv = kf.kp.uv[idx]
-        pc = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d, (uv[:, 1] - K[1, 2]) / K[1, 1] * d, d], 1)
-        return transform(inv_se3(kf.w2c), pc)
+        """World points [N,3] of keypoints idx [N] of kf at their depth."""
+        return transform(inv_se3(kf.w2c), self.setup.backproject(kf.kp.uv[idx], kf.depth[idx]))
 
     # ------------------------------------------------------------------ fusion
     def _fuse(self, kf: KeyFrame) -> None:
-        m = self.sys.map
-        nn = self.cfg.fuse_neighbors * (2 if self.sys.sensor == "mono" else 1)
+        m = self.map
+        nn = self.cfg.fuse_neighbors * (2 if self.setup.sensor == "mono" else 1)
         targets = []
         for n in kf.covisible(nn):
             if n in m.kfs and n not in targets:
                 targets.append(n)
-                for n2 in m.kfs[n].covisible(5):
+                for n2 in m.kfs[n].covisible(self.cfg.fuse_second_neighbors):
                     if n2 != kf.kf_id and n2 in m.kfs and n2 not in targets:
                         targets.append(n2)
         _, own = m.kf_point_ids(kf)
@@ -210,19 +239,20 @@ class LocalMapper:
         m.update_descriptors(own)
         m.update_connections(kf)
 
-    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float = 3.0, S: np.ndarray | None = None) -> int:
+    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float | None = None, S: np.ndarray | None = None) -> int:
         """Project points pids into kf and merge with what its keypoints hold (ORB-SLAM Fuse).
 
-        S: optional similarity w2c [4,4] used for the projection instead of kf.w2c (loop fusion).
+        pids [M]: point ids; th: projection radius x level scale (None: mapping.fuse_th); S: optional
+        similarity w2c [4,4] used for the projection instead of kf.w2c (loop fusion).
         Returns the number of fused / added observations.
         """
-        m = self.sys.map
+        m = self.map
         pids = pids[m.valid[pids]]
         pids = np.array([p for p in pids.tolist() if kf.kf_id not in m.obs[p]], np.int64)
         if len(pids) == 0:
             return 0
         w2c = S if S is not None else kf.w2c
-        q, k = self.project_match(kf, pids, w2c, th, fuse=True)
+        q, k = self.project_match(kf, pids, w2c, self.cfg.fuse_th if th is None else th, fuse=True)
         n, merged = 0, []
         for p, i in zip(pids[q].tolist(), k.tolist()):
             if not m.valid[p] or kf.kf_id in m.obs[p]:
@@ -245,30 +275,31 @@ class LocalMapper:
     def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,
                       fuse: bool) -> tuple[np.ndarray, np.ndarray]:
         """Vectorized projection search of points into a keyframe (chi2-gated when fuse)."""
-        m, sysm, cam = self.sys.map, self.sys, self.sys.camera
+        m, su, cam, mc = self.map, self.setup, self.setup.camera, self.match_cfg
         s = float(np.cbrt(np.linalg.det(w2c[:3, :3])))
         P = m.pos[pids]
         pc = transform(w2c, P)
-        uv = project(sysm.K, pc)
+        uv = project(su.K, pc)
         C = -np.linalg.inv(w2c[:3, :3]) @ w2c[:3, 3]
         PO = P - C
         dist = np.linalg.norm(PO, axis=1)
         cos = (PO * m.normal[pids]).sum(1) / np.maximum(dist, 1e-12)
         ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height) \
-            & (dist >= 0.8 * m.dmin[pids]) & (dist <= 1.2 * m.dmax[pids]) & (cos >= 0.5)
+            & (dist >= mc.dist_margin_min * m.dmin[pids]) & (dist <= mc.dist_margin_max * m.dmax[pids]) \
+            & (cos >= mc.min_view_cos)
         sel = np.flatnonzero(ok)
         level = m.predict_level(pids[sel], dist[sel])
-        radius = th * sysm.scales[level]
+        radius = th * su.scales[level]
         qi, ki = kf.grid.query(uv[sel], radius)
         o = kf.kp.octave[ki]
         good = (o >= level[qi] - 1) & (o <= level[qi])
         if fuse:
-            e2 = ((uv[sel][qi] - kf.kp.uv[ki]) ** 2).sum(1) / sysm.sigma2[o]
+            e2 = ((uv[sel][qi] - kf.kp.uv[ki]) ** 2).sum(1) / su.sigma2[o]
             st = kf.ur[ki] >= 0
             zc = pc[sel][qi, 2] / s
-            w_ur = 1.0 / sysm.sigma2[o] if sysm.ur_sigma is None else 1.0 / sysm.ur_sigma ** 2
+            w_ur = 1.0 / su.sigma2[o] if su.ur_sigma is None else 1.0 / su.ur_sigma ** 2
             disp = kf.kp.uv[ki, 0] - kf.ur[ki]
-            e2 = e2 + np.where(st, (sysm.bf / np.maximum(zc, 1e-9) - disp) ** 2, 0) * w_ur
+            e2 = e2 + np.where(st, (su.bf / np.maximum(zc, 1e-9) - disp) ** 2, 0) * w_ur
             good &= e2 < np.where(st, CHI2_STEREO, CHI2_MONO)
         qi, ki = qi[good], ki[good]
         d = hamming_pairs(m.desc[pids[sel]], qi, kf.kp.desc, ki)
@@ -280,7 +311,7 @@ class LocalMapper:
 
     # ------------------------------------------------------------------ bundle adjustment
     def local_ba(self, kf: KeyFrame) -> None:
-        m = self.sys.map
+        m = self.map
         with m.lock:
             if kf.kf_id not in m.kfs:
                 return
@@ -289,7 +320,7 @@ class LocalMapper:
 
     def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None:
         """BA of kf_ids (default: all keyframes) with the origin fixed; fix_scale: see run_ba."""
-        m = self.sys.map
+        m = self.map
         with m.lock:
             window = sorted(m.kfs) if kf_ids is None else list(kf_ids)
         self.run_ba(window, 0, (iterations, iterations // 2), global_=True, fix_scale=fix_scale)
@@ -306,14 +337,14 @@ class LocalMapper:
         import time
 
         t0 = time.perf_counter()
-        m, sysm = self.sys.map, self.sys
+        m, su = self.map, self.setup
         with m.lock:
             problem = self._build_problem(window, fixed_max)
         if problem is None:
             return
         poses, fixed, points, obs, rigid = problem
-        new_poses, new_points, bad = sysm.ba.run_two_pass(poses, fixed, points, obs, iterations)
-        if fix_scale and sysm.sensor == "mono" and len(fixed) == 1:
+        new_poses, new_points, bad = self.ba.run_two_pass(poses, fixed, points, obs, iterations)
+        if fix_scale and su.sensor == "mono" and len(fixed) == 1:
             self._keep_gauge_scale(poses[next(iter(fixed))], points, new_poses, new_points, fixed)
         with m.lock:
             self._move_rigid(rigid, poses, new_poses)
@@ -344,7 +375,7 @@ class LocalMapper:
 
     def _move_rigid(self, rigid, old_poses, new_poses) -> None:
         """Points left out of BA follow their only keyframe: p <- T_new^-1 T_old p."""
-        m = self.sys.map
+        m = self.map
         kfs, pids = rigid
         for k in np.unique(kfs).tolist():
             sel = pids[(kfs == k) & m.valid[pids]]
@@ -353,7 +384,7 @@ class LocalMapper:
                 m.pos[sel] = m.pos[sel] @ M[:3, :3].T + M[:3, 3]
 
     def _build_problem(self, window: list[int], fixed_max: int):
-        m, mono = self.sys.map, self.sys.sensor == "mono"
+        m, mono = self.map, self.setup.sensor == "mono"
         window = [k for k in window if k in m.kfs]
         if not window:
             return None
@@ -399,8 +430,8 @@ class LocalMapper:
         return poses, fixed, pts, obs, (kk[rigid], pp[rigid])
 
     def _write_back(self, window, new_poses, fixed, new_points, obs, bad) -> None:
-        m = self.sys.map
-        min_obs = 2 if self.sys.sensor == "mono" else 1
+        m = self.map
+        min_obs = 2 if self.setup.sensor == "mono" else 1
         for k, p in zip(obs.kf[bad].tolist(), obs.pid[bad].tolist()):
             if m.valid[p]:
                 m.erase_obs(p, k, min_obs)
@@ -413,21 +444,21 @@ class LocalMapper:
         for p in pids.tolist():
             m.pos[p] = new_points[p]
         m.update_geometry(pids)
-        self.sys.emit_poses(touched)
+        self.outbox.add_poses(self.map.keyframe_poses(touched))
 
     # ------------------------------------------------------------------ keyframe culling
     def _cull_keyframes(self, kf: KeyFrame) -> None:
         """ORB-SLAM's redundancy test: a covisible keyframe is culled when more than `redundancy`
         of its (close) points are seen by at least 3 other keyframes at the same or a finer scale."""
-        m, sysm = self.sys.map, self.sys
-        th_obs = 3
+        m, su = self.map, self.setup
+        th_obs = self.cfg.redundant_observers
         for n in kf.covisible(self.cfg.cull_window):
             k = m.kfs.get(n)
             if k is None or n == m.origin_kf or k.protected or n == kf.kf_id:
                 continue
             idx, pids = m.kf_point_ids(k)
-            if sysm.sensor != "mono":
-                close = (k.depth[idx] > 0) & (k.depth[idx] < sysm.th_depth)
+            if su.sensor != "mono":
+                close = (k.depth[idx] > 0) & (k.depth[idx] < su.th_depth)
                 idx, pids = idx[close], pids[close]
             many = m.n_obs[pids] > th_obs  # points seen often enough to be redundant at all
             if len(pids) == 0 or many.sum() <= self.cfg.redundancy * len(pids):
@@ -446,5 +477,5 @@ class LocalMapper:
                                 break
             if redundant > self.cfg.redundancy * len(pids):
                 m.set_kf_bad(k)
-                sysm.kfdb.erase(n)
-                sysm.log(f"culled keyframe {n}")
+                self.kfdb.erase(n)
+                self.log(f"culled keyframe {n}")

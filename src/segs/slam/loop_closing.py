@@ -12,18 +12,18 @@ world-to-world similarity ``c2w_new @ w2c_old`` is reported as a correction.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Callable, Protocol
 
 import numpy as np
 
 from segs.slam.geometry import inv_se3, transform, umeyama
-from segs.slam.map import KeyFrame
+from segs.slam.config import LoopConfig
+from segs.slam.map import KeyFrame, Map
 from segs.slam.matching import TH_LOW, match_frame_to_kf
 from segs.slam.optimize import pose_graph
-from segs.slam.vocabulary import bow_score
-
-if TYPE_CHECKING:
-    from segs.slam.orb import OrbFrontend
+from segs.slam.outbox import MapOutbox
+from segs.slam.sensor import SensorSetup
+from segs.slam.vocabulary import KeyFrameDatabase, bow_score
 
 CHI2_SIM3 = 9.21
 
@@ -39,25 +39,63 @@ def similarity_to_se3(S: np.ndarray) -> np.ndarray:
     return T
 
 
+class MapRefinement(Protocol):
+    """What loop closing asks of local mapping (`LocalMapper`): guided projection search, point
+    fusion, global bundle adjustment."""
+
+    def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,
+                      fuse: bool) -> tuple[np.ndarray, np.ndarray]: ...
+    def fuse_into(self, kf: KeyFrame, pids: np.ndarray, th: float | None = None, S: np.ndarray | None = None) -> int: ...
+    def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None: ...
+
+
 class LoopCloser:
-    def __init__(self, system: "OrbFrontend"):
-        self.sys = system
-        self.cfg = system.cfg.loop
+    """Loop closing on `map` (see the module docstring), and the global bundle adjustment.
+
+    cfg: the loop group; setup: the sensor; kfdb: loop candidates; mapper: local mapping's search,
+    fusion and BA; outbox: receives the corrections and the moved poses; on_map_corrected: called
+    after keyframes moved (the tracker recomposes its last pose); seed: RANSAC seed; log: events.
+    """
+
+    def __init__(self, cfg: LoopConfig, setup: SensorSetup, map_: Map, kfdb: KeyFrameDatabase,
+                 mapper: MapRefinement, outbox: MapOutbox, on_map_corrected: Callable[[], None], seed: int,
+                 log: Callable[[str], None]):
+        self.cfg, self.setup, self.map, self.kfdb, self.mapper = cfg, setup, map_, kfdb, mapper
+        self.outbox, self.on_map_corrected, self.seed, self.log = outbox, on_map_corrected, int(seed), log
         self.groups: list[tuple[set[int], int]] = []
         self.last_loop_kf = -(10 ** 9)
         self.loops: list[tuple[int, int]] = []  # (current kf, loop kf)
 
-    def __getstate__(self) -> dict:
-        """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
-        state = dict(self.__dict__)
-        state.pop("sys", None)
-        return state
+    _STATE = ("groups", "last_loop_kf", "loops")
+
+    def state_dict(self) -> dict:
+        """What a checkpoint keeps (the collaborators come from the constructor)."""
+        return {k: getattr(self, k) for k in self._STATE}
+
+    def load_state_dict(self, state: dict) -> None:
+        for k in self._STATE:
+            if k in state:
+                setattr(self, k, state[k])
+
+    def run_global_ba(self, iterations: int) -> None:
+        """Global BA (origin fixed; call under the map lock); reports the pose changes as corrections."""
+        m = self.map
+        old = {k: f.w2c.copy() for k, f in m.kfs.items()}
+        self.mapper.global_ba(None, iterations)
+        corr = {k: inv_se3(f.w2c) @ old[k] for k, f in m.kfs.items() if k in old}
+        for c in m.culled.values():
+            a = m.live_ancestor(c.kf_id)
+            if a in corr:
+                corr[c.kf_id] = corr[a]
+        self.outbox.add_corrections(corr)
+        self.outbox.add_poses(m.keyframe_poses(list(m.kfs) + list(m.culled)))
+        self.on_map_corrected()
 
     def process(self, kf: KeyFrame) -> bool:
         """Try to close a loop at keyframe kf; True when a loop was corrected."""
         if not self.cfg.enabled:
             return False
-        m = self.sys.map
+        m = self.map
         with m.lock:
             if kf.kf_id not in m.kfs:
                 return False
@@ -76,21 +114,21 @@ class LoopCloser:
             self._correct(kf, *found)
             kf.protected = False
             if self.cfg.global_ba:
-                self.sys.run_global_ba(self.cfg.global_ba_iterations)
+                self.run_global_ba(self.cfg.global_ba_iterations)
         return True
 
     # ------------------------------------------------------------------ detection
     def _detect(self, kf: KeyFrame) -> list[int]:
-        m, sysm = self.sys.map, self.sys
+        m = self.map
         if len(m.kfs) < self.cfg.min_kfs or kf.kf_id - self.last_loop_kf < self.cfg.min_kfs_since_loop:
             return []
-        bow = sysm.kfdb.bows.get(kf.kf_id)
+        bow = self.kfdb.bows.get(kf.kf_id)
         if bow is None:
             return []
-        scores = [bow_score(bow, sysm.kfdb.bows[n]) for n in kf.conn if n in sysm.kfdb.bows]
+        scores = [bow_score(bow, self.kfdb.bows[n]) for n in kf.conn if n in self.kfdb.bows]
         min_score = min(scores) if scores else 0.0
         exclude = set(kf.conn) | {kf.kf_id} | {k for k in m.kfs if k > kf.kf_id - self.cfg.min_gap_kfs}
-        cands = sysm.kfdb.candidates(bow, exclude, min_score,
+        cands = self.kfdb.candidates(bow, exclude, min_score,
                                      {k: f.covisible(10) for k, f in m.kfs.items()}, max_out=10)
         if not cands:
             self.groups = []
@@ -119,7 +157,7 @@ class LoopCloser:
     # ------------------------------------------------------------------ verification
     def _verify(self, kf: KeyFrame, cand: KeyFrame):
         """-> (loop kf, Scw [4,4] corrected similarity w2c of kf, matches {kf kp idx: loop pid}) or None."""
-        m, sysm = self.sys.map, self.sys
+        m, su = self.map, self.setup
         fi, pids = match_frame_to_kf(kf, cand, m.valid, ratio=self.cfg.match_ratio, max_dist=TH_LOW)
         if len(fi) < self.cfg.min_matches:
             return None
@@ -132,7 +170,7 @@ class LoopCloser:
         if len(fi) < self.cfg.min_inliers:
             return None
         S12, inl = self._ransac(X1, X2, kf.kp.uv[fi], cand.kp.uv[cidx],
-                                sysm.sigma2[kf.kp.octave[fi]], sysm.sigma2[cand.kp.octave[cidx]])
+                                su.sigma2[kf.kp.octave[fi]], su.sigma2[cand.kp.octave[cidx]])
         if S12 is None or inl.sum() < self.cfg.min_inliers:
             return None
         Scw = S12 @ cand.w2c
@@ -140,17 +178,17 @@ class LoopCloser:
         matched = {int(f): int(p) for f, p in zip(fi[inl], pids[inl])}
         free = np.array([p for p in loop_pids.tolist() if p not in set(matched.values())], np.int64)
         if len(free):
-            q, k = sysm.mapper.project_match(kf, free, Scw, th=10.0, fuse=False)
+            q, k = self.mapper.project_match(kf, free, Scw, th=self.cfg.guided_search_th, fuse=False)
             for qq, kk in zip(q.tolist(), k.tolist()):
                 matched.setdefault(int(kk), int(free[qq]))
         if len(matched) < self.cfg.min_total:
             return None
-        sysm.log(f"loop: keyframe {kf.kf_id} <-> {cand.kf_id}, {int(inl.sum())} inliers, {len(matched)} matches")
+        self.log(f"loop: keyframe {kf.kf_id} <-> {cand.kf_id}, {int(inl.sum())} inliers, {len(matched)} matches")
         return cand, Scw, matched
 
     def _kf_points(self, kf: KeyFrame, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame 3D of kf keypoints idx: its map point, else its depth -> ([N,3], ok [N])."""
-        m, K = self.sys.map, self.sys.K
+        m = self.map
         pid = kf.points[idx]
         has = (pid >= 0)
         has[has] = m.valid[pid[has]]
@@ -158,16 +196,15 @@ class LoopCloser:
         X[has] = transform(kf.w2c, m.pos[pid[has]])
         d = kf.depth[idx]
         dep = ~has & (d > 0)
-        uv = kf.kp.uv[idx[dep]]
-        X[dep] = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d[dep], (uv[:, 1] - K[1, 2]) / K[1, 1] * d[dep], d[dep]], 1)
+        X[dep] = self.setup.backproject(kf.kp.uv[idx[dep]], d[dep])
         return X, has | dep
 
-    def _ransac(self, X1, X2, uv1, uv2, s1, s2, iters: int = 300):
+    def _ransac(self, X1, X2, uv1, uv2, s1, s2):
         """S12 (X1 ~ S12 X2) by RANSAC over minimal sets of 3 -> (S [4,4] or None, inliers [N])."""
-        sysm = self.sys
-        rng = np.random.default_rng(sysm.seed)
-        with_scale = sysm.sensor == "mono"
-        K = sysm.K
+        su = self.setup
+        rng = np.random.default_rng(self.seed)
+        with_scale = su.sensor == "mono"
+        K = su.K
         n = len(X1)
         best, best_inl = None, np.zeros(n, bool)
 
@@ -181,7 +218,7 @@ class LoopCloser:
             e2 = ((u2.T + K[:2, 2] - uv2) ** 2).sum(1)
             return ok & (e1 < CHI2_SIM3 * s1) & (e2 < CHI2_SIM3 * s2)
 
-        for _ in range(iters):
+        for _ in range(self.cfg.ransac_iterations):
             s = rng.choice(n, 3, replace=False)
             if np.linalg.matrix_rank(X2[s] - X2[s].mean(0), tol=1e-6) < 2:
                 continue
@@ -198,15 +235,15 @@ class LoopCloser:
         return (S, inl) if inl.sum() >= best_inl.sum() * 0.8 else (best, best_inl)
 
     def _loop_points(self, cand: KeyFrame) -> np.ndarray:
-        m = self.sys.map
+        m = self.map
         ids = [cand.kf_id] + cand.covisible()
         arrs = [m.kf_point_ids(m.kfs[k])[1] for k in ids if k in m.kfs]
         return np.unique(np.concatenate(arrs)) if arrs else np.zeros(0, np.int64)
 
     # ------------------------------------------------------------------ correction
     def _correct(self, kf: KeyFrame, loop: KeyFrame, Scw: np.ndarray, matched: dict[int, int]) -> None:
-        m, sysm = self.sys.map, self.sys
-        mono = sysm.sensor == "mono"
+        m, su = self.map, self.setup
+        mono = su.sensor == "mono"
         old = {k: f.w2c.copy() for k, f in m.kfs.items()}
         connected = [kf.kf_id] + [k for k in kf.covisible() if k in m.kfs]
         Twc = inv_se3(kf.w2c)
@@ -235,7 +272,7 @@ class LoopCloser:
         before = {k: set(m.kfs[k].conn) for k in connected if k in m.kfs}
         for k in connected:
             if k in m.kfs:
-                sysm.mapper.fuse_into(m.kfs[k], loop_pids[m.valid[loop_pids]], th=4.0, S=corrected[k])
+                self.mapper.fuse_into(m.kfs[k], loop_pids[m.valid[loop_pids]], th=self.cfg.fuse_th, S=corrected[k])
         new_links: dict[int, set[int]] = {}
         for k in connected:
             if k in m.kfs:
@@ -271,12 +308,12 @@ class LoopCloser:
         self.last_loop_kf = kf.kf_id
         self.loops.append((kf.kf_id, loop.kf_id))
         self.groups = []
-        sysm.emit_corrections(corrections)
-        sysm.emit_poses(list(m.kfs) + list(m.culled))
-        sysm.tracker.on_map_corrected()
+        self.outbox.add_corrections(corrections)
+        self.outbox.add_poses(m.keyframe_poses(list(m.kfs) + list(m.culled)))
+        self.on_map_corrected()
 
     def _essential_edges(self, old, corrected, new_links) -> list[tuple[int, int, np.ndarray]]:
-        m = self.sys.map
+        m = self.map
         edges, seen = [], set()
 
         def add(i, j, Si, Sj):

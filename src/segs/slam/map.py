@@ -81,19 +81,30 @@ class Map:
         self.scales = np.asarray(scales, np.float64)
         self.log_scale = float(np.log(self.scales[1])) if len(self.scales) > 1 else 1.0
         self.lock = threading.RLock()
+        self._empty(capacity)
+
+    def clear(self, capacity: int = 4096) -> None:
+        """Drop every keyframe and point (a rejected monocular initial map); keyframe ids keep
+        counting (never reused) and the lock stays (its holder may be inside it)."""
+        next_id = self.next_kf_id
+        self._empty(capacity)
+        self.next_kf_id = next_id
+
+    def _empty(self, capacity: int) -> None:
         self.kfs: dict[int, KeyFrame] = {}
         self.culled: dict[int, CulledKeyFrame] = {}
         self.next_kf_id = 0
         self.origin_kf: int | None = None
         self.version = 0  # bumps when point membership of keyframes changes
         self.n = 0
-        self._alloc(capacity)
+        self._alloc(capacity, keep=False)
         self.obs: list[dict[int, int]] = []
 
     # ----------------------------------------------------------------- point storage
-    def _alloc(self, cap: int) -> None:
+    def _alloc(self, cap: int, keep: bool = True) -> None:
+        """(Re)allocate the point arrays for cap points; keep: copy the current rows over."""
         def grow(name, shape, dtype, fill=0):
-            old = getattr(self, name, None)
+            old = getattr(self, name, None) if keep else None
             new = np.full((cap,) + shape, fill, dtype)
             if old is not None:
                 new[: len(old)] = old
@@ -247,22 +258,35 @@ class Map:
     def update_descriptors(self, pids: np.ndarray) -> None:
         """Distinctive descriptor: the observation's descriptor with the least median distance.
 
-        Vectorized per group of points with the same number of observations.
+        The observations' descriptors are gathered per keyframe, then the distances are computed
+        per group of points with the same number of observations (vectorized).
         """
-        groups: dict[int, tuple[list, list]] = {}
+        pts, counts, kf_of, kp_of = [], [], [], []
         for pid in np.asarray(pids, np.int64).tolist():
             ds = [(k, i) for k, i in self.obs[pid].items() if k in self.kfs]
             if len(ds) < 2:
                 continue
-            g = groups.setdefault(len(ds), ([], []))
-            g[0].append(pid)
-            g[1].append(np.stack([self.kfs[k].kp.desc[i] for k, i in ds]))
-        for n, (gp, gd) in groups.items():
-            d = np.stack(gd)  # [P,n,32]
+            pts.append(pid)
+            counts.append(len(ds))
+            for k, i in ds:
+                kf_of.append(k)
+                kp_of.append(i)
+        if not pts:
+            return
+        kf_of, kp_of = np.asarray(kf_of, np.int64), np.asarray(kp_of, np.int64)
+        desc = np.empty((len(kf_of), 32), np.uint8)  # [O,32] observation descriptors, point-major
+        for k in np.unique(kf_of).tolist():
+            sel = kf_of == k
+            desc[sel] = self.kfs[k].kp.desc[kp_of[sel]]
+        pts, counts = np.asarray(pts, np.int64), np.asarray(counts, np.int64)
+        starts = np.cumsum(counts) - counts
+        for n in np.unique(counts).tolist():
+            g = counts == n
+            d = desc[starts[g][:, None] + np.arange(n)]  # [P,n,32]
             d64 = d.view(np.uint64)  # [P,n,4]
             dm = np.bitwise_count(d64[:, :, None, :] ^ d64[:, None, :, :]).sum(-1)  # [P,n,n]
             best = np.argmin(np.median(dm, axis=2), axis=1)
-            self.desc[np.asarray(gp)] = d[np.arange(len(gp)), best]
+            self.desc[pts[g]] = d[np.arange(int(g.sum())), best]
 
     def predict_level(self, pids: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """Predicted pyramid level [M] for points pids viewed from distance dist [M]."""
@@ -376,6 +400,29 @@ class Map:
             rel = rel @ c.rel
             kf_id = c.parent
         return rel @ self.kfs[kf_id].w2c
+
+    def keyframe_poses(self, kf_ids: list[int]) -> dict[int, np.ndarray]:
+        """kf_id -> w2c [4,4] (copies) of live keyframes and of culled ones, recomposed from their
+        parent (ORB-SLAM's Tcp); unknown ids are left out."""
+        out = {}
+        for k in kf_ids:
+            if k in self.kfs:
+                out[k] = self.kfs[k].w2c.copy()
+            elif k in self.culled:
+                T = self.kf_pose(k)
+                if T is not None:
+                    out[k] = T
+        return out
+
+    def take_new_points(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The valid points among pids not handed out before, marked as handed out ->
+        (positions [M,3] float64, colours [M,3] float32, creating keyframe [M] int64), or None."""
+        pids = np.asarray(pids, np.int64)
+        pids = pids[self.valid[pids] & ~self.emitted[pids]]
+        if len(pids) == 0:
+            return None
+        self.emitted[pids] = True
+        return self.pos[pids].copy(), self.color[pids].copy(), self.first_kf[pids].copy()
 
     def live_ancestor(self, kf_id: int) -> int | None:
         while kf_id not in self.kfs:

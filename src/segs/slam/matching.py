@@ -50,15 +50,18 @@ def unique_targets(q: np.ndarray, k: np.ndarray, d: np.ndarray) -> np.ndarray:
     return keep
 
 
-def rotation_consistent(angle_a: np.ndarray, angle_b: np.ndarray, bins: int = 30) -> np.ndarray:
-    """Mask of matches whose orientation change lies in the three dominant histogram bins [P]."""
+def rotation_consistent(angle_a: np.ndarray, angle_b: np.ndarray, bins: int = 30,
+                        min_share: float = 0.1) -> np.ndarray:
+    """Mask of matches whose orientation change lies in the three dominant histogram bins [P]
+    (ORB-SLAM's HISTO_LENGTH 30 bins; the second and third count if they hold at least min_share
+    of the first's matches, ComputeThreeMaxima's 0.1)."""
     if len(angle_a) == 0:
         return np.zeros(0, bool)
     rot = np.mod(angle_a.astype(np.float64) - angle_b.astype(np.float64), 360.0)
     b = np.minimum((rot * bins / 360.0).astype(np.int64), bins - 1)
     h = np.bincount(b, minlength=bins)
     top = np.argsort(-h, kind="stable")[:3]
-    keep_bins = [top[0]] + [t for t in top[1:] if h[t] >= 0.1 * h[top[0]]]
+    keep_bins = [top[0]] + [t for t in top[1:] if h[t] >= min_share * h[top[0]]]
     return np.isin(b, keep_bins)
 
 
@@ -130,10 +133,12 @@ def match_frame_to_kf(frame, kf, valid: np.ndarray, ratio: float = 0.75,
 
 
 def match_for_triangulation(kf1, kf2, F12: np.ndarray, sigma2: np.ndarray, ratio: float = 0.6,
-                            max_dist: int = TH_LOW, epi_chi2: float = CHI2_EPIPOLAR) -> tuple[np.ndarray, np.ndarray]:
+                            max_dist: int = TH_LOW, epi_chi2: float = CHI2_EPIPOLAR,
+                            knn: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Unmatched keypoints of kf1 vs kf2 satisfying the epipolar constraint.
 
-    F12 [3,3]: x2^T F12 x1 = 0. Returns (idx1 [K], idx2 [K]).
+    F12 [3,3]: x2^T F12 x1 = 0; knn: descriptor candidates per keypoint tried against the epipolar
+    line. Returns (idx1 [K], idx2 [K]).
     """
     i1 = np.flatnonzero(kf1.points < 0)
     i2 = np.flatnonzero(kf2.points < 0)
@@ -141,8 +146,8 @@ def match_for_triangulation(kf1, kf2, F12: np.ndarray, sigma2: np.ndarray, ratio
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     # descriptors first (cv2 kNN on the free keypoints), then the epipolar test on the survivors
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-    knn = bf.knnMatch(kf1.kp.desc[i1], kf2.kp.desc[i2], k=8)
-    rows = [(m.queryIdx, m.trainIdx, m.distance) for ms in knn for m in ms]
+    pairs = bf.knnMatch(kf1.kp.desc[i1], kf2.kp.desc[i2], k=knn)
+    rows = [(m.queryIdx, m.trainIdx, m.distance) for ms in pairs for m in ms]
     if not rows:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     a = np.array(rows, np.float64)

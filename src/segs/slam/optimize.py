@@ -217,6 +217,16 @@ def _pose3(w2c: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(inv_se3(w2c))
 
 
+def _schur_ordering(poses, points) -> gtsam.Ordering:
+    """Elimination order: every point, then every pose."""
+    order = gtsam.Ordering()
+    for p in points:
+        order.push_back(_L0 + int(p))
+    for k in poses:
+        order.push_back(_X0 + int(k))
+    return order
+
+
 class BundleAdjuster:
     """Local / global BA over keyframe poses and points with gtsam (Huber, LM).
 
@@ -278,6 +288,11 @@ class BundleAdjuster:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(iterations))
         params.setRelativeErrorTol(1e-5)
+        # points first, poses last: the elimination is the Schur complement of BA (a dense
+        # reduced camera system); sequential Cholesky is 10-15 % faster than the multifrontal
+        # default here, with the same steps (bench/local_ba.py)
+        params.setOrdering(_schur_ordering(poses, points))
+        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
         try:
             result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         except RuntimeError:  # indeterminate system (degenerate window): keep the input

@@ -12,19 +12,21 @@ reference keyframe, close-point need for stereo / RGB-D).
 from __future__ import annotations
 
 from enum import Enum
-from typing import TYPE_CHECKING
+from typing import Callable, Protocol
 
 import numpy as np
 
+from segs.slam.config import InitConfig, MatchingConfig, TrackingConfig
 from segs.slam.frame import SlamFrame
+from segs.slam.frame_poses import FramePoses
 from segs.slam.geometry import cam_center, inv_se3, orthonormalize, project, transform
 from segs.slam.initialization import MonoInitializer
-from segs.slam.map import KeyFrame
+from segs.slam.map import KeyFrame, Map
 from segs.slam.matching import TH_HIGH, match_frame_to_kf, search_projection
 from segs.slam.optimize import CHI2_MONO, pnp_ransac, refine_pose
-
-if TYPE_CHECKING:
-    from segs.slam.orb import OrbFrontend as SlamSystem
+from segs.slam.outbox import MapOutbox
+from segs.slam.sensor import SensorSetup
+from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
 
 
 class TrackingState(str, Enum):
@@ -36,12 +38,39 @@ class TrackingState(str, Enum):
     LOST = "lost"  # the last frame was lost; the next ones try relocalization
 
 
-class Tracker:
-    """Tracks frames against the map of `system` (a SlamSystem)."""
+class LocalMapping(Protocol):
+    """What tracking asks of local mapping (`LocalMapper`): new points to watch, the monocular
+    initial map's bundle adjustment and registration, forgetting a rejected initial map."""
 
-    def __init__(self, system: "SlamSystem"):
-        self.sys = system
-        self.cfg = system.cfg.tracking
+    def add_recent(self, pids: np.ndarray) -> None: ...
+    def register_initial(self, kfs: list[KeyFrame], pids: np.ndarray) -> None: ...
+    def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None: ...
+    def clear_recent(self) -> None: ...
+
+
+class MappingStatus(Protocol):
+    """Whether local mapping takes a keyframe now (`KeyFrameQueue`; ORB-SLAM's AcceptKeyFrames)."""
+
+    def accepts_keyframes(self) -> bool: ...
+    def idle(self) -> bool: ...
+
+
+class Tracker:
+    """Tracks frames against `map` and writes each frame's pose record (`poses`, a FramePoses).
+
+    cfg / init_cfg / match_cfg: the tracking, init and matching groups; setup: the sensor;
+    vocab / kfdb: relocalization candidates (and cleared with the map); mapper: local mapping's
+    services; outbox: receives the monocular initial keyframe; mapping: whether local mapping takes
+    keyframes; seed: RANSAC seeds; log: event messages. New keyframes are returned by `track`; the caller hands them to mapping.
+    """
+
+    def __init__(self, cfg: TrackingConfig, init_cfg: InitConfig, match_cfg: MatchingConfig, setup: SensorSetup,
+                 map_: Map, vocab: Vocabulary, kfdb: KeyFrameDatabase, mapper: LocalMapping, outbox: MapOutbox,
+                 mapping: MappingStatus, seed: int, log: Callable[[str], None]):
+        self.cfg, self.init_cfg, self.match_cfg, self.setup, self.map = cfg, init_cfg, match_cfg, setup, map_
+        self.vocab, self.kfdb, self.mapper, self.outbox, self.mapping = vocab, kfdb, mapper, outbox, mapping
+        self.seed, self.log = int(seed), log
+        self.poses = FramePoses()
         self.state = TrackingState.NOT_INITIALIZED
         self.last: SlamFrame | None = None
         self.velocity: np.ndarray | None = None
@@ -54,54 +83,62 @@ class Tracker:
         self._local_kfs: list[int] = []
         self._local_pids = np.zeros(0, np.int64)
         self._max_inl = 0
-        self.mono_init = MonoInitializer(system.cfg.init, system.K, system.sigma2, system.seed) \
-            if system.sensor == "mono" else None
+        self.mono_init = MonoInitializer(init_cfg, setup.K, setup.sigma2, self.seed) if setup.mono else None
 
-    def __getstate__(self) -> dict:
-        """Pickled without the frontend back-reference (restored by OrbFrontend.load_state_dict)."""
-        state = dict(self.__dict__)
-        state.pop("sys", None)
-        return state
+    _STATE = ("poses", "state", "last", "velocity", "ref_kf", "last_kf_frame", "last_reloc_frame", "lost_since",
+              "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init")
 
-    def __setstate__(self, state: dict) -> None:
-        """Checkpoints written before TrackingState hold the plain strings: read them as the Enum."""
-        state["state"] = TrackingState(state["state"])
-        self.__dict__.update(state)
+    def state_dict(self) -> dict:
+        """What a checkpoint keeps (the collaborators come from the constructor)."""
+        return {k: getattr(self, k) for k in self._STATE}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Checkpoints written before TrackingState hold the plain strings: read as the Enum."""
+        for k in self._STATE:
+            if k in state:
+                setattr(self, k, state[k])
+        self.state = TrackingState(self.state)
 
     # ------------------------------------------------------------------ entry point
     def track(self, frame: SlamFrame) -> KeyFrame | None:
-        """Sets frame.w2c (None when lost); returns a new keyframe if one was created."""
-        m = self.sys.map
-        with m.lock:
-            if self.state == TrackingState.NOT_INITIALIZED:
-                return self._initialize(frame)
-            ok = False
-            if self.state == TrackingState.OK:
-                if self.last is not None and self.last.index == frame.index - 1:
-                    ok = self._track_motion(frame) and self._track_local_map(frame)
-                if not ok:  # the reference keyframe (descriptors, then PnP RANSAC), then the local map
-                    frame.points[:] = -1
-                    frame.outlier[:] = False
-                    ok = self._track_reference(frame) and self._track_local_map(frame)
-            else:
-                ok = self._relocalize(frame)
-            if not ok:
-                return self._lost(frame)
-            if self.state != TrackingState.OK:
-                self.lost_since = None
-            self.state = TrackingState.OK
-            if self.last is not None and self.last.w2c is not None and frame.index - self.last.index == 1:
-                self.velocity = orthonormalize(frame.w2c @ inv_se3(self.last.w2c))
-            else:
-                self.velocity = None
-            kf = self._create_keyframe(frame) if self._need_keyframe(frame) else None
-            frame.points[frame.outlier] = -1
-            frame.outlier[:] = False
-            self.last = frame
-            self.last_good_w2c = frame.w2c
-            if kf is None:
-                frame.ref_kf = self.ref_kf
-            return kf
+        """Sets frame.w2c (None when lost) and records it; returns a new keyframe if one was created."""
+        with self.map.lock:
+            kf = self._track(frame)
+            self.poses.record(frame.index, frame.w2c, kf.kf_id if kf is not None else None, frame.ref_kf,
+                              self.map.kf_pose)
+        return kf
+
+    def _track(self, frame: SlamFrame) -> KeyFrame | None:
+        """One frame under the map lock: initialization, tracking or relocalization."""
+        if self.state == TrackingState.NOT_INITIALIZED:
+            return self._initialize(frame)
+        ok = False
+        if self.state == TrackingState.OK:
+            if self.last is not None and self.last.index == frame.index - 1:
+                ok = self._track_motion(frame) and self._track_local_map(frame)
+            if not ok:  # the reference keyframe (descriptors, then PnP RANSAC), then the local map
+                frame.points[:] = -1
+                frame.outlier[:] = False
+                ok = self._track_reference(frame) and self._track_local_map(frame)
+        else:
+            ok = self._relocalize(frame)
+        if not ok:
+            return self._lost(frame)
+        if self.state != TrackingState.OK:
+            self.lost_since = None
+        self.state = TrackingState.OK
+        if self.last is not None and self.last.w2c is not None and frame.index - self.last.index == 1:
+            self.velocity = orthonormalize(frame.w2c @ inv_se3(self.last.w2c))
+        else:
+            self.velocity = None
+        kf = self._create_keyframe(frame) if self._need_keyframe(frame) else None
+        frame.points[frame.outlier] = -1
+        frame.outlier[:] = False
+        self.last = frame
+        self.last_good_w2c = frame.w2c
+        if kf is None:
+            frame.ref_kf = self.ref_kf
+        return kf
 
     def _lost(self, frame: SlamFrame) -> None:
         frame.w2c = None
@@ -110,23 +147,29 @@ class Tracker:
             self.lost_since = frame.index
         self.state = TrackingState.LOST
         n_lost = frame.index - (self.lost_since if self.lost_since is not None else frame.index)
-        if self.cfg.restart_after_lost and n_lost >= self.cfg.restart_after_lost and self.sys.sensor != "mono":
-            self.sys.log(f"frame {frame.index}: lost for {n_lost} frames, restarting at the last pose")
+        if self.cfg.restart_after_lost and n_lost >= self.cfg.restart_after_lost and self.setup.sensor != "mono":
+            self.log(f"frame {frame.index}: lost for {n_lost} frames, restarting at the last pose")
             self.state = TrackingState.NOT_INITIALIZED
         return None
 
     # ------------------------------------------------------------------ initialization
+    def _reset_map(self) -> None:
+        """Drop a rejected (monocular) initial map; keyframe ids keep counting (never reused)."""
+        self.map.clear()
+        self.kfdb.clear()
+        self.mapper.clear_recent()
+
     def _initialize(self, frame: SlamFrame) -> KeyFrame | None:
-        if self.sys.sensor == "mono":
+        if self.setup.sensor == "mono":
             return self._initialize_mono(frame)
-        need = min(self.cfg.min_init_points, self.sys.cfg.features.n_features // 3)
+        need = min(self.cfg.min_init_points, self.setup.n_features // 3)
         if int((frame.depth > 0).sum()) < need:
             frame.w2c = None
             return None
         w2c = self.last_good_w2c if self.last_good_w2c is not None else np.eye(4)
         frame.w2c = w2c.copy()
-        kf = KeyFrame(self.sys.map.new_kf_id(), frame, frame.w2c)
-        self.sys.map.add_keyframe(kf)
+        kf = KeyFrame(self.map.new_kf_id(), frame, frame.w2c)
+        self.map.add_keyframe(kf)
         idx = np.flatnonzero(frame.depth > 0)
         self._add_depth_points(kf, idx)
         frame.points = kf.points.copy()
@@ -137,7 +180,7 @@ class Tracker:
         res = self.mono_init.try_initialize(frame)
         if res is None:
             return None
-        m = self.sys.map
+        m = self.map
         ref = self.mono_init.ref
         ref.w2c = np.eye(4)
         frame.w2c = res.w2c
@@ -152,14 +195,14 @@ class Tracker:
         m.update_descriptors(pids)
         m.update_connections(kf0)
         m.update_connections(kf1)
-        self.sys.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=20, fix_scale=False)
+        self.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=self.init_cfg.ba_iterations, fix_scale=False)
         # scale: median depth of the first keyframe = 1
         _, p0 = m.kf_point_ids(kf0)
         depth = transform(kf0.w2c, m.pos[p0])[:, 2]
         _, p1 = m.kf_point_ids(kf1)
-        if len(p1) < self.sys.cfg.init.min_triangulated or np.median(depth) <= 0:
-            self.sys.log(f"frame {frame.index}: monocular initialization rejected, resetting")
-            self.sys.reset_map()
+        if len(p1) < self.init_cfg.min_triangulated or np.median(depth) <= 0:
+            self.log(f"frame {frame.index}: monocular initialization rejected, resetting")
+            self._reset_map()
             return None
         s = 1.0 / float(np.median(depth))
         T1 = kf1.w2c.copy()
@@ -168,10 +211,11 @@ class Tracker:
         m.pos[p0] *= s
         frame.w2c = kf1.w2c.copy()
         frame.points = kf1.points.copy()
-        self.sys.mapper.register_initial([kf0, kf1], pids)
+        self.mapper.register_initial([kf0, kf1], pids)
         waiting = self.mono_init.waiting
         self.mono_init.reset()
-        self.sys.record_initial_keyframe(kf0)
+        self.poses.add_keyframe(kf0.frame_index, kf0.kf_id)
+        self.outbox.add_keyframe(kf0.kf_id, kf0.w2c)
         ref.w2c, ref.points = kf0.w2c.copy(), kf0.points.copy()
         self._track_waiting(ref, kf0, waiting)
         return self._after_init(frame, kf1)
@@ -191,7 +235,7 @@ class Tracker:
                 continue
             f.points[f.outlier] = -1
             f.outlier[:] = False
-            self.sys.record_waiting_frame(f.index, kf0.kf_id, f.w2c @ inv_se3(kf0.w2c))
+            self.poses.add_relative(f.index, kf0.kf_id, f.w2c @ inv_se3(kf0.w2c))
             self.last = f
 
     def _after_init(self, frame: SlamFrame, kf: KeyFrame) -> KeyFrame:
@@ -207,36 +251,33 @@ class Tracker:
 
     def _add_depth_points(self, kf: KeyFrame, idx: np.ndarray) -> np.ndarray:
         """Back-project keypoints idx of kf (with depth) into new map points -> ids."""
-        K = self.sys.K
-        d = kf.depth[idx]
-        uv = kf.kp.uv[idx]
-        pc = np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * d, (uv[:, 1] - K[1, 2]) / K[1, 1] * d, d], 1)
+        pc = self.setup.backproject(kf.kp.uv[idx], kf.depth[idx])
         pw = transform(inv_se3(kf.w2c), pc)
-        pids = self.sys.map.add_points(pw, kf, idx)
-        self.sys.mapper.add_recent(pids)
+        pids = self.map.add_points(pw, kf, idx)
+        self.mapper.add_recent(pids)
         return pids
 
     # ------------------------------------------------------------------ frame-to-frame
     def _track_motion(self, frame: SlamFrame) -> bool:
         """Constant-velocity prediction + projection matching of the last frame's points. Without a
         velocity (after a relocalization) the last pose is the prediction, with a doubled window."""
-        th = self.cfg.window_motion if self.sys.sensor == "mono" else self.cfg.window_motion_stereo
+        th = self.cfg.window_motion if self.setup.sensor == "mono" else self.cfg.window_motion_stereo
         if self.velocity is None:
             frame.w2c = self.last.w2c.copy()
-            th *= 2
+            th *= self.cfg.window_no_velocity_factor
         else:
             frame.w2c = orthonormalize(self.velocity @ self.last.w2c)
         n = self._search_last(frame, th)
         if n < self.cfg.min_matches_motion:
             frame.points[:] = -1
-            n = self._search_last(frame, 2 * th)
+            n = self._search_last(frame, self.cfg.window_retry_factor * th)
         if n < self.cfg.min_matches_motion:
             frame.points[:] = -1
             return False
         return self._optimize(frame) >= self.cfg.min_pose_inliers
 
     def _search_last(self, frame: SlamFrame, th: float) -> int:
-        m, last = self.sys.map, self.last
+        m, last = self.map, self.last
         idx = np.flatnonzero(last.points >= 0)
         pids = last.points[idx]
         keep = m.valid[pids]
@@ -244,13 +285,13 @@ class Tracker:
         if len(pids) == 0:
             return 0
         pc = transform(frame.w2c, m.pos[pids])
-        uv = project(self.sys.K, pc)
-        cam = self.sys.camera
+        uv = project(self.setup.K, pc)
+        cam = self.setup.camera
         ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         idx, pids, pc, uv = idx[ok], pids[ok], pc[ok], uv[ok]
         oct_ = last.kp.octave[idx]
-        radius = th * self.sys.scales[oct_]
-        ur = uv[:, 0] - self.sys.bf / pc[:, 2] if self.sys.sensor != "mono" else None
+        radius = th * self.setup.scales[oct_]
+        ur = uv[:, 0] - self.setup.bf / pc[:, 2] if self.setup.sensor != "mono" else None
         q, k = search_projection(frame, uv, m.desc[pids], oct_, radius, oct_ - 1, oct_ + 1, ur,
                                  max_dist=TH_HIGH, ratio=1.0, angle=last.kp.angle[idx])
         frame.points[k] = pids[q]
@@ -259,7 +300,7 @@ class Tracker:
     def _track_reference(self, frame: SlamFrame) -> bool:
         """Descriptor matching with the reference keyframe: optimisation from the last pose (ORB-SLAM),
         else PnP RANSAC on looser matches (wide baselines, repetitive texture)."""
-        m = self.sys.map
+        m = self.map
         ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
         if ref is None or self.last is None:
             return False
@@ -278,8 +319,8 @@ class Tracker:
         """PnP RANSAC + refinement from the matches frame keypoints fi <-> points pids."""
         frame.points[:] = -1
         frame.outlier[:] = False
-        w2c, inl = pnp_ransac(self.sys.map.pos[pids], frame.kp.uv[fi], self.sys.K,
-                              reproj=np.sqrt(CHI2_MONO) * 2, seed=self.sys.seed + frame.index)
+        w2c, inl = pnp_ransac(self.map.pos[pids], frame.kp.uv[fi], self.setup.K,
+                              reproj=np.sqrt(CHI2_MONO) * self.cfg.pnp_reproj_factor, seed=self.seed + frame.index)
         if w2c is None or inl.sum() < self.cfg.min_pose_inliers:
             return 0
         frame.points[fi[inl]] = pids[inl]
@@ -290,13 +331,13 @@ class Tracker:
         """Motion-only optimisation of frame.w2c on its matches; marks outliers; -> inliers.
 
         warm: frame.w2c was already optimised (the local-map step after frame-to-frame tracking)."""
-        m = self.sys.map
+        m = self.map
         idx = np.flatnonzero(frame.points >= 0)
         pids = frame.points[idx]
-        ur = frame.ur[idx] if self.sys.sensor != "mono" else None
+        ur = frame.ur[idx] if self.setup.sensor != "mono" else None
         w2c, inl = refine_pose(frame.w2c, m.pos[pids], frame.kp.uv[idx], ur,
-                               1.0 / self.sys.sigma2[frame.kp.octave[idx]], self.sys.K, self.sys.bf,
-                               ur_sigma=self.sys.ur_sigma, warm=warm)
+                               1.0 / self.setup.sigma2[frame.kp.octave[idx]], self.setup.K, self.setup.bf,
+                               ur_sigma=self.setup.ur_sigma, warm=warm)
         frame.w2c = w2c
         frame.outlier[:] = False
         frame.outlier[idx[~inl]] = True
@@ -304,7 +345,7 @@ class Tracker:
 
     # ------------------------------------------------------------------ local map
     def _update_local_map(self, frame: SlamFrame) -> None:
-        m = self.sys.map
+        m = self.map
         pids = frame.points[(frame.points >= 0) & ~frame.outlier]
         pids = pids[m.valid[pids]]
         votes: dict[int, int] = {}
@@ -323,7 +364,7 @@ class Tracker:
             if len(local) >= cap:
                 break
             kf = m.kfs[k]
-            extra = kf.covisible(10) + sorted(kf.children) + ([kf.parent] if kf.parent is not None else [])
+            extra = kf.covisible(self.cfg.local_map_covisible) + sorted(kf.children) + ([kf.parent] if kf.parent is not None else [])
             for n in extra:
                 if n in m.kfs and n not in seen and len(local) < cap:
                     local.append(n)
@@ -337,7 +378,7 @@ class Tracker:
         self._local_kfs = local
 
     def _track_local_map(self, frame: SlamFrame, th: float | None = None) -> bool:
-        m = self.sys.map
+        m = self.map
         self._update_local_map(frame)
         frame.points[frame.outlier] = -1
         frame.outlier[:] = False
@@ -351,14 +392,14 @@ class Tracker:
 
     def _local_th(self, frame: SlamFrame) -> float:
         th = self.cfg.local_map_th
-        if self.sys.sensor == "rgbd":
-            th *= 3
+        if self.setup.sensor == "rgbd":
+            th *= self.cfg.local_map_th_rgbd
         if frame.index - self.last_reloc_frame < 2:
-            th *= 5
+            th *= self.cfg.local_map_th_reloc
         return th
 
     def _search_local(self, frame: SlamFrame, th: float) -> int:
-        m, cam = self.sys.map, self.sys.camera
+        m, cam, cfg, mc = self.map, self.setup.camera, self.cfg, self.match_cfg
         pids = self._local_pids
         pids = pids[m.valid[pids]]
         pids = np.setdiff1d(pids, frame.points[frame.points >= 0], assume_unique=False)
@@ -366,18 +407,20 @@ class Tracker:
             return 0
         P = m.pos[pids]
         pc = transform(frame.w2c, P)
-        uv = project(self.sys.K, pc)
+        uv = project(self.setup.K, pc)
         C = cam_center(frame.w2c)
         PO = P - C
         dist = np.linalg.norm(PO, axis=1)
         cos = (PO * m.normal[pids]).sum(1) / np.maximum(dist, 1e-12)
         ok = (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) \
-            & (uv[:, 1] < cam.height) & (dist >= 0.8 * m.dmin[pids]) & (dist <= 1.2 * m.dmax[pids]) & (cos >= 0.5)
+            & (uv[:, 1] < cam.height) & (dist >= mc.dist_margin_min * m.dmin[pids]) \
+            & (dist <= mc.dist_margin_max * m.dmax[pids]) & (cos >= mc.min_view_cos)
         pids, pc, uv, dist, cos = pids[ok], pc[ok], uv[ok], dist[ok], cos[ok]
         m.visible[pids] += 1
         level = m.predict_level(pids, dist)
-        radius = th * np.where(cos > 0.998, 2.5, 4.0) * self.sys.scales[level]
-        ur = uv[:, 0] - self.sys.bf / pc[:, 2] if self.sys.sensor != "mono" else None
+        radius = th * np.where(cos > cfg.local_map_narrow_cos, cfg.local_map_radius_narrow, cfg.local_map_radius_wide) \
+            * self.setup.scales[level]
+        ur = uv[:, 0] - self.setup.bf / pc[:, 2] if self.setup.sensor != "mono" else None
         q, k = search_projection(frame, uv, m.desc[pids], level, radius, level - 1, level, ur,
                                  max_dist=TH_HIGH, ratio=self.cfg.local_map_ratio)
         frame.points[k] = pids[q]
@@ -385,15 +428,15 @@ class Tracker:
 
     # ------------------------------------------------------------------ relocalization
     def _relocalize(self, frame: SlamFrame) -> bool:
-        m, sysm = self.sys.map, self.sys
-        bow = sysm.bow_of(frame.kp.desc)
-        cands = sysm.kfdb.candidates(bow, set(), 0.0, {k: kf.covisible(10) for k, kf in m.kfs.items()},
+        m = self.map
+        bow = self.vocab.bow_of(frame.kp.desc)
+        cands = self.kfdb.candidates(bow, set(), 0.0, {k: kf.covisible(10) for k, kf in m.kfs.items()},
                                      max_out=self.cfg.reloc_candidates)
         # recently lost: the last reference keyframe and its best neighbours come first
         recent = []
         ref = m.kfs.get(self.ref_kf) if self.ref_kf is not None else None
         if ref is not None and self.lost_since is not None and frame.index - self.lost_since <= self.cfg.recent_lost:
-            recent = [ref.kf_id] + ref.covisible(2)
+            recent = [ref.kf_id] + ref.covisible(self.cfg.recent_lost_covisible)
         for c in recent + [c for c in cands if c not in recent]:
             kf = m.kfs.get(c)
             if kf is None:
@@ -407,8 +450,8 @@ class Tracker:
             frame.points[frame.outlier] = -1
             frame.outlier[:] = False
             self.last_reloc_frame = frame.index
-            if self._track_local_map(frame, th=self.cfg.local_map_th * 5):
-                sysm.log(f"frame {frame.index}: relocalized against keyframe {c}")
+            if self._track_local_map(frame, th=self.cfg.local_map_th * self.cfg.local_map_th_reloc):
+                self.log(f"frame {frame.index}: relocalized against keyframe {c}")
                 return True
         frame.points[:] = -1
         frame.w2c = None
@@ -419,18 +462,15 @@ class Tracker:
         self._local_key = None
         if self.last is None or self.last.w2c is None:
             return
-        rec = self.sys._traj.get(self.last.index)
-        if rec is None:
-            return
-        base = self.sys.map.kf_pose(rec[1])
-        if base is not None:
-            self.last.w2c = base.copy() if rec[0] == "kf" else rec[2] @ base
+        w2c = self.poses.w2c(self.last.index, self.map.kf_pose)
+        if w2c is not None:
+            self.last.w2c = w2c
             self.last_good_w2c = self.last.w2c
 
     # ------------------------------------------------------------------ keyframes
     def _need_keyframe(self, frame: SlamFrame) -> bool:
-        m, cfg, sysm = self.sys.map, self.cfg, self.sys
-        if not sysm.accepts_keyframes() and frame.index - self.last_kf_frame < cfg.kf_max_gap:
+        m, cfg, su = self.map, self.cfg, self.setup
+        if not self.mapping.accepts_keyframes() and frame.index - self.last_kf_frame < cfg.kf_max_gap:
             return False
         if frame.index == self.last_reloc_frame and len(m.kfs) > 1:  # not the relocalized frame itself
             return False
@@ -443,17 +483,17 @@ class Tracker:
         tracked = (frame.points >= 0) & ~frame.outlier
         n_inl = int(tracked.sum())
         need_close = False
-        if sysm.sensor != "mono":
-            close = (frame.depth > 0) & (frame.depth < sysm.th_depth)
+        if su.sensor != "mono":
+            close = (frame.depth > 0) & (frame.depth < su.th_depth)
             n_tc = int((close & tracked).sum())
             n_nc = int((close & ~tracked).sum())
             need_close = n_tc < cfg.kf_close_tracked and n_nc > cfg.kf_close_untracked
-        ratio = cfg.kf_ref_ratio_mono if sysm.sensor == "mono" else cfg.kf_ref_ratio
+        ratio = cfg.kf_ref_ratio_mono if su.sensor == "mono" else cfg.kf_ref_ratio
         gap = frame.index - self.last_kf_frame
         c1a = gap >= cfg.kf_max_gap
-        min_gap = cfg.kf_min_gap_mono if sysm.sensor == "mono" else cfg.kf_min_gap
-        c1b = gap >= min_gap and sysm.mapping_idle()
-        c1c = sysm.sensor != "mono" and (n_inl < cfg.kf_ref_ratio_weak * n_ref or need_close)
+        min_gap = cfg.kf_min_gap_mono if su.sensor == "mono" else cfg.kf_min_gap
+        c1b = gap >= min_gap and self.mapping.idle()
+        c1c = su.sensor != "mono" and (n_inl < cfg.kf_ref_ratio_weak * n_ref or need_close)
         # coverage (ours): the tracked points fell below a share of the best count since the last
         # keyframe; like c1c a need (tracking is about to fail), so it ignores kf_min_gap
         self._max_inl = max(self._max_inl, n_inl)
@@ -462,21 +502,21 @@ class Tracker:
         # monocular weak tracking (ORB-SLAM3's c4, there for inertial monocular): fewer than
         # kf_weak_mono tracked points; forward motion leaves the mapped area within frames and
         # keyframes are the only source of new points
-        c4 = sysm.sensor == "mono" and cfg.kf_min_tracked < n_inl < cfg.kf_weak_mono
+        c4 = su.sensor == "mono" and cfg.kf_min_tracked < n_inl < cfg.kf_weak_mono
         return (c2 and (c1a or c1b or c1c or low_cover)) or c4
 
     def _create_keyframe(self, frame: SlamFrame) -> KeyFrame:
-        m = self.sys.map
+        m = self.map
         frame.points[frame.outlier] = -1
         frame.outlier[:] = False
         kf = KeyFrame(m.new_kf_id(), frame, frame.w2c)
         m.add_keyframe(kf)
-        if self.sys.sensor != "mono":
+        if self.setup.sensor != "mono":
             free = np.flatnonzero((frame.depth > 0) & (kf.points < 0))
             if self.cfg.rgbd_new_points != "all":
                 order = free[np.argsort(frame.depth[free], kind="stable")]
-                close = frame.depth[order] < self.sys.th_depth
-                close[: min(100, len(close))] = True
+                close = frame.depth[order] < self.setup.th_depth
+                close[: min(self.cfg.kf_min_new_points, len(close))] = True
                 free = np.sort(order[close])
             self._add_depth_points(kf, free)
             frame.points = kf.points.copy()

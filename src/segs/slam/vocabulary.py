@@ -188,6 +188,10 @@ class Vocabulary:
         s = val.sum()
         return w, (val / s if s > 0 else val)
 
+    def bow_of(self, desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bag of words of descriptors [N,32] (`bow(words(desc))`)."""
+        return self.bow(self.words(desc))
+
 
 def bow_score(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
     """DBoW2 L1 score in [0,1] of two bow vectors (word ids, weights)."""
@@ -209,6 +213,11 @@ class KeyFrameDatabase:
         self.bows[kf_id] = bow
         for w in bow[0].tolist():
             self.index.setdefault(w, set()).add(kf_id)
+
+    def clear(self) -> None:
+        """Forget every keyframe (a rejected monocular initial map)."""
+        self.index = {}
+        self.bows = {}
 
     def erase(self, kf_id: int) -> None:
         bow = self.bows.pop(kf_id, None)

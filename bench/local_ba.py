@@ -1,0 +1,163 @@
+"""Where local bundle adjustment spends its time, on real frames (issue 13 item 1).
+
+Tracks the first --frames frames of the shared 7-Scenes sequence with the frontend as
+`segs.track +experiment=seven_scenes_{sensor}` builds it (defaults) and records every local BA
+problem (poses, fixed keyframes, points, observations). Then, on the last --problems of them
+(the map is warm there), it times with the machine otherwise unchanged:
+
+- the parts: building the gtsam factors, one linearisation, one linearisation + elimination
+  (with the elimination order BundleAdjuster uses and with gtsam's default COLAMD order), one
+  error evaluation;
+- whole optimisations: solver / order variants and iteration budgets, with the final cost
+  (sum of robust squared whitened errors) relative to the 5+10 reference;
+- BundleAdjuster.run_two_pass as the frontend calls it (the figure in fe.mapper.ba_times, minus
+  reading / writing the map).
+
+Medians over problems, each timed --repeat times (the median of those). JSON: outputs/bench/local_ba.json.
+
+    python bench/local_ba.py --frames 300 --problems 12
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from segs.config import compose, instantiate, make_sequence
+from segs.slam import optimize
+from segs.slam.optimize import _L0, _X0, BundleAdjuster, _pose3
+
+ROOT = Path(__file__).resolve().parents[1]
+SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+
+
+def record_problems(sensor: str, frames: int) -> tuple[list, BundleAdjuster, dict]:
+    """Track the first `frames` frames; every local BA problem passed to run_two_pass."""
+    cfg = compose([f"+experiment=seven_scenes_{sensor}", f"data.root={SEVEN_SCENES}", f"data.frames=[0,{frames}]"],
+                  output_dir="/tmp/segs_bench_ba")  # fmt: skip
+    seq = make_sequence(cfg.data)
+    fe = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
+    problems = []
+    original = optimize.BundleAdjuster.run_two_pass
+
+    def spy(self, poses, fixed, points, obs, iterations):
+        problems.append((dict(poses), set(fixed), dict(points), obs, tuple(iterations)))
+        return original(self, poses, fixed, points, obs, iterations)
+
+    optimize.BundleAdjuster.run_two_pass = spy
+    try:
+        for i in range(len(seq)):
+            fe.process(seq[i])
+    finally:
+        optimize.BundleAdjuster.run_two_pass = original
+    info = {"keyframes": len(fe.keyframe_frames()), "local_ba_ms_in_run": 1e3 * float(np.median(fe.mapper.ba_times))}
+    return problems, fe.ba, info
+
+
+def graph_of(ba: BundleAdjuster, poses, fixed, points, obs):
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for k, T in poses.items():
+        values.insert(_X0 + int(k), _pose3(T))
+        if k in fixed:
+            graph.add(gtsam.PriorFactorPose3(_X0 + int(k), _pose3(T), ba.prior))
+    for p, x in points.items():
+        values.insert(_L0 + int(p), np.asarray(x, np.float64))
+    for f in ba._factors(obs):
+        graph.add(f)
+    return graph, values
+
+
+def optimise(graph, values, order, iterations: int, solver: str, method: str = "LM"):
+    """-> (seconds, final error, iterations run)."""
+    params = gtsam.LevenbergMarquardtParams() if method == "LM" else gtsam.GaussNewtonParams()
+    params.setMaxIterations(iterations)
+    params.setRelativeErrorTol(1e-5)
+    params.setLinearSolverType(solver)
+    if order is not None:
+        params.setOrdering(order)
+    cls = gtsam.LevenbergMarquardtOptimizer if method == "LM" else gtsam.GaussNewtonOptimizer
+    t = time.perf_counter()
+    opt = cls(graph, values, params)
+    result = opt.optimize()
+    return time.perf_counter() - t, graph.error(result), opt.iterations()
+
+
+def timed(fn, repeat: int) -> float:
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return statistics.median(ts)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sensor", default="rgbd", choices=("rgbd", "mono"))
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--problems", type=int, default=12)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args()
+    if not (SEVEN_SCENES / "seq").is_dir():
+        raise SystemExit(f"bench/local_ba.py: the 7-Scenes frames are not at {SEVEN_SCENES}")
+    load0 = os.getloadavg()
+    problems, ba, info = record_problems(args.sensor, args.frames)
+    problems = problems[-args.problems:]
+    rows: dict[str, list[float]] = {}
+
+    def add(name, value):
+        rows.setdefault(name, []).append(value)
+
+    variants = [("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", (5, 10)),
+                ("BundleAdjuster.run_two_pass, the configured iterations", "config")] + [
+        (f"{m} {it} it, {solver.split('_')[0].lower()} Cholesky, {'points-first' if schur else 'COLAMD'}", (m, it, solver, schur))
+        for m, it, solver, schur in [("LM", 5, "MULTIFRONTAL_CHOLESKY", False), ("LM", 5, "SEQUENTIAL_CHOLESKY", True),
+                                     ("LM", 10, "SEQUENTIAL_CHOLESKY", True), ("LM", 3, "SEQUENTIAL_CHOLESKY", True),
+                                     ("GN", 3, "SEQUENTIAL_CHOLESKY", True)]]  # fmt: skip
+    for poses, fixed, points, obs, iterations in problems:
+        add("observations", len(obs.kf))
+        add("points", len(points))
+        add("keyframes (optimised + fixed)", len(poses))
+        add("build factors + values (ms)", 1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat))
+        graph, values = graph_of(ba, poses, fixed, points, obs)
+        order = optimize._schur_ordering(poses, points)
+        add("one linearisation (ms)", 1e3 * timed(lambda: graph.linearize(values), args.repeat))
+        add("one error evaluation (ms)", 1e3 * timed(lambda: graph.error(values), args.repeat))
+        lin = graph.linearize(values)
+        add("one elimination, COLAMD multifrontal (ms)", 1e3 * timed(lambda: lin.eliminateMultifrontal(), args.repeat))
+        add("one elimination, points first, sequential (ms)", 1e3 * timed(lambda: lin.eliminateSequential(order), args.repeat))
+        ref_error = None
+        for name, v in variants:
+            if not isinstance(v, tuple) or len(v) == 2:
+                its = iterations if v == "config" else v
+                add(f"{name} {its} (ms)", 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its), args.repeat))
+                continue
+            m, it, solver, schur = v
+            secs, err, its = zip(*[optimise(graph, values, order if schur else None, it, solver, m) for _ in range(args.repeat)])
+            add(name + " (ms)", 1e3 * statistics.median(secs))
+            if ref_error is None:
+                ref_error = optimise(graph, values, order, 5, "SEQUENTIAL_CHOLESKY")[1]
+            add(name + ": final cost / LM-5 cost", err[0] / ref_error)
+            add(name + ": iterations", its[0])
+    table = {k: statistics.median(v) for k, v in rows.items()}
+    print(f"local BA on {len(problems)} problems of 7-Scenes {args.sensor} frames 0-{args.frames} "
+          f"(load {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}); medians:")
+    for k, v in table.items():
+        print(f"  {k:72s} {v:12.5f}")
+    print(f"  {'local BA in the tracking run (fe.mapper.ba_times, median, ms)':72s} {info['local_ba_ms_in_run']:12.1f}")
+    out = ROOT / "outputs" / "bench"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "local_ba.json").write_text(json.dumps({
+        "args": vars(args), "machine": platform.platform(), "cpus": os.cpu_count(), "load": [load0, os.getloadavg()],
+        "info": info, "medians": table}, indent=2))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
