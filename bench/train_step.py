@@ -1,4 +1,4 @@
-"""Mapping iteration time on the bundled real TUM sample, per model, with a breakdown.
+"""Mapping iteration time on the bundled real TUM sample (or another experiment), per model, with a breakdown.
 
 Builds the map of every sample keyframe from known poses (320x240), warms each model up with
 `--warmup` training iterations of a `--schedule`-step run (densification on, so the Gaussian
@@ -7,6 +7,7 @@ times `--iters` iterations: decode, rasterize (forward), loss, backward (raster 
 loss), optimizer step. Prints one table (medians) and writes outputs/bench/train_step.json.
 
     python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
+    python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
 """
 from __future__ import annotations
 
@@ -30,9 +31,9 @@ from segs.raster import rasterize
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def build(model: str, steps: int, backend: str, device: str = "cpu"):
-    cfg = compose(["+experiment=sample", "slam=known_poses", f"trainer.max_steps={steps}", f"raster.backend={backend}"]
-                  + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []), output_dir="/tmp/segs_bench")  # fmt: skip
+def build(model: str, steps: int, backend: str, device: str = "cpu", experiment: str = "sample", extra=()):
+    cfg = compose([f"+experiment={experiment}", "slam=known_poses", f"trainer.max_steps={steps}", f"raster.backend={backend}"]
+                  + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []) + list(extra), output_dir="/tmp/segs_bench")  # fmt: skip
     seq = make_sequence(cfg.data)
     frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
     module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
@@ -78,15 +79,18 @@ def iteration(module: GaussianMapperModule, opt, step: int, timed: bool) -> dict
     return t
 
 
-def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu") -> dict:
+def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu",
+          experiment: str = "sample", extra=()) -> dict:
     torch.manual_seed(0)
-    module = build(model, schedule, backend, device)
+    module = build(model, schedule, backend, device, experiment, extra)
     opt = make_adam(module.model.param_groups())
     for s in range(warmup):
         iteration(module, opt, s, False)
     rows = [iteration(module, opt, warmup + i, True) for i in range(iters)]
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     med["anchors"] = int(module.model.counts()["anchors"])
+    view = module.views.sample()
+    med["size"] = f"{view.camera.width}x{view.camera.height}"
     return med
 
 
@@ -98,12 +102,16 @@ def main() -> None:
     p.add_argument("--backend", default="cpu")
     p.add_argument("--models", nargs="+", default=["segs", "plain_3dgs"])
     p.add_argument("--device", default="cpu", help="torch device of the model (cuda with --backend cuda)")
+    p.add_argument("--experiment", default="sample", help="+experiment=NAME (with slam=known_poses)")
+    p.add_argument("--extra", nargs="*", default=[], help="more config overrides, e.g. data.frames=[100,250]")
     p.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "train_step.json"))
     args = p.parse_args()
-    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device) for m in args.models}
+    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra)
+               for m in args.models}
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else None
-    print(f"{gpu or cpu}, {torch.get_num_threads()} threads, backend {args.backend}, 320x240, medians of {args.iters} iterations "
+    size = next(iter(results.values()))["size"]
+    print(f"{gpu or cpu}, {torch.get_num_threads()} threads, backend {args.backend}, {size}, medians of {args.iters} iterations "
           f"after {args.warmup} of a {args.schedule}-step schedule")
     keys = ["decode", "raster_fwd", "loss", "backward", "step+stats", "total"]
     print(f"| model | Gaussians drawn | anchors | {' | '.join(k + ' ms' for k in keys)} | it/s |")
