@@ -198,8 +198,11 @@ void backward(const State& st, const BackwardIn& in, const BackwardOut& out, int
   Scratch<float> scratch;
   std::vector<float>& bufs = scratch.v;
   bufs.assign(stride * threads, 0.f);
-  double bg[3] = {0.0, 0.0, 0.0};
+  std::vector<double> bg_parts(3 * static_cast<size_t>(threads), 0.0);
   int used = 1;
+  // Deterministic: tile i always goes to thread i % used (static round robin, which balances
+  // about as well as a dynamic schedule here), and the per-thread sums are added in thread order
+  // in scatter(), so the same inputs give bit-identical gradients from run to run.
 #pragma omp parallel num_threads(threads)
   {
     TileGrad* s = new TileGrad;
@@ -207,16 +210,19 @@ void backward(const State& st, const BackwardIn& in, const BackwardOut& out, int
     const int t = omp_get_thread_num();
 #pragma omp single
     used = omp_get_num_threads();
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(static, 1)
     for (int tile = 0; tile < n_tiles; ++tile) {
       load_tile(st, in, tile, *s, bg_local);
       backprop_tile(st, tile, *s, bufs.data() + stride * t);
     }
-#pragma omp critical
-    for (int c = 0; c < 3; ++c) bg[c] += bg_local[c];
+    for (int c = 0; c < 3; ++c) bg_parts[3 * t + c] = bg_local[c];
     delete s;
   }
-  for (int c = 0; c < 3; ++c) out.background[c] = static_cast<float>(bg[c]);
+  for (int c = 0; c < 3; ++c) {
+    double bg = 0.0;
+    for (int t = 0; t < used; ++t) bg += bg_parts[3 * t + c];
+    out.background[c] = static_cast<float>(bg);
+  }
   scatter(st, bufs, used, out, threads);
 }
 
