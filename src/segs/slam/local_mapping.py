@@ -22,9 +22,10 @@ from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, BundleAdjuster, Observati
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
 from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
+from segs.slam.state import StateFields
 
 
-class LocalMapper:
+class LocalMapper(StateFields):
     """Local mapping of one keyframe at a time on `map` (see the module docstring).
 
     cfg / match_cfg: the mapping and matching groups; setup: the sensor; vocab / kfdb: bag of words of each new keyframe
@@ -44,14 +45,6 @@ class LocalMapper:
 
     _STATE = ("recent", "ba_times")
 
-    def state_dict(self) -> dict:
-        """What a checkpoint keeps (the collaborators come from the constructor)."""
-        return {k: getattr(self, k) for k in self._STATE}
-
-    def load_state_dict(self, state: dict) -> None:
-        for k in self._STATE:
-            if k in state:
-                setattr(self, k, state[k])
 
     def add_recent(self, pids: np.ndarray) -> None:
         self.recent.extend(int(p) for p in pids)

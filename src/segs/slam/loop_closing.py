@@ -24,6 +24,7 @@ from segs.slam.optimize import pose_graph
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
 from segs.slam.vocabulary import KeyFrameDatabase, bow_score
+from segs.slam.state import StateFields
 
 CHI2_SIM3 = 9.21
 
@@ -49,7 +50,7 @@ class MapRefinement(Protocol):
     def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None: ...
 
 
-class LoopCloser:
+class LoopCloser(StateFields):
     """Loop closing on `map` (see the module docstring), and the global bundle adjustment.
 
     cfg: the loop group; setup: the sensor; kfdb: loop candidates; mapper: local mapping's search,
@@ -68,14 +69,6 @@ class LoopCloser:
 
     _STATE = ("groups", "last_loop_kf", "loops")
 
-    def state_dict(self) -> dict:
-        """What a checkpoint keeps (the collaborators come from the constructor)."""
-        return {k: getattr(self, k) for k in self._STATE}
-
-    def load_state_dict(self, state: dict) -> None:
-        for k in self._STATE:
-            if k in state:
-                setattr(self, k, state[k])
 
     def run_global_ba(self, iterations: int) -> None:
         """Global BA (origin fixed; call under the map lock); reports the pose changes as corrections."""

@@ -27,6 +27,7 @@ from segs.slam.optimize import CHI2_MONO, pnp_ransac, refine_pose
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
 from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
+from segs.slam.state import StateFields
 
 
 class TrackingState(str, Enum):
@@ -55,7 +56,7 @@ class MappingStatus(Protocol):
     def idle(self) -> bool: ...
 
 
-class Tracker:
+class Tracker(StateFields):
     """Tracks frames against `map` and writes each frame's pose record (`poses`, a FramePoses).
 
     cfg / init_cfg / match_cfg: the tracking, init and matching groups; setup: the sensor;
@@ -88,15 +89,9 @@ class Tracker:
     _STATE = ("poses", "state", "last", "velocity", "ref_kf", "last_kf_frame", "last_reloc_frame", "lost_since",
               "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init")
 
-    def state_dict(self) -> dict:
-        """What a checkpoint keeps (the collaborators come from the constructor)."""
-        return {k: getattr(self, k) for k in self._STATE}
-
     def load_state_dict(self, state: dict) -> None:
         """Checkpoints written before TrackingState hold the plain strings: read as the Enum."""
-        for k in self._STATE:
-            if k in state:
-                setattr(self, k, state[k])
+        super().load_state_dict(state)
         self.state = TrackingState(self.state)
 
     # ------------------------------------------------------------------ entry point
