@@ -32,7 +32,7 @@ import numpy as np
 
 from segs.config import compose, instantiate, make_sequence
 from segs.slam import optimize
-from segs.slam.optimize import _L0, _X0, BundleAdjuster, _pose3
+from segs.slam.optimize import BundleAdjuster
 
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
@@ -62,16 +62,8 @@ def record_problems(sensor: str, frames: int) -> tuple[list, BundleAdjuster, dic
 
 
 def graph_of(ba: BundleAdjuster, poses, fixed, points, obs):
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for k, T in poses.items():
-        values.insert(_X0 + int(k), _pose3(T))
-        if k in fixed:
-            graph.add(gtsam.PriorFactorPose3(_X0 + int(k), _pose3(T), ba.prior))
-    for p, x in points.items():
-        values.insert(_L0 + int(p), np.asarray(x, np.float64))
-    for f in ba._factors(obs):
-        graph.add(f)
-    return graph, values
+    """The graph BundleAdjuster optimises, with its factors built from obs."""
+    return ba.graph(poses, fixed, points, ba._factors(obs))
 
 
 def optimise(graph, values, order, iterations: int, solver: str, method: str = "LM"):

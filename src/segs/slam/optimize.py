@@ -274,7 +274,9 @@ class BundleAdjuster:
                 out.append(mono(np.array((u, v)), n2[o], x, lm, cal))
         return out
 
-    def _optimize(self, poses, fixed, points, factors, iterations):
+    def graph(self, poses, fixed, points, factors) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The factor graph (observation factors + priors holding the fixed poses) and its
+        initial values: poses kf_id -> w2c [4,4], points pid -> [3]."""
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         for k, T in poses.items():
@@ -285,6 +287,10 @@ class BundleAdjuster:
             values.insert(_L0 + int(p), np.asarray(x, np.float64))
         for f in factors:
             graph.add(f)
+        return graph, values
+
+    def _optimize(self, poses, fixed, points, factors, iterations):
+        graph, values = self.graph(poses, fixed, points, factors)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(iterations))
         params.setRelativeErrorTol(1e-5)
