@@ -9,6 +9,8 @@ half-size int(0.1 * min(H, W)), amplitude + phase terms as in FreGS) and "low_hi
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -39,7 +41,7 @@ def spectrum(image: torch.Tensor) -> torch.Tensor:
 
 
 def amplitude_loss(fr: torch.Tensor, fg: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean over C*H*W of | |M Fr| - |M Fg| |."""
+    """Mean over C*H*W of | |M Fr| - |M Fg| | on full centred spectra (the definition; tests)."""
     return ((mask * fr).abs() - (mask * fg).abs()).abs().mean()
 
 
@@ -49,9 +51,9 @@ def phase_loss(fr: torch.Tensor, fg: torch.Tensor, mask: torch.Tensor) -> torch.
     return (mask * diff).sum() / (mask.sum() * fr.shape[0]).clamp_min(1.0)
 
 
-def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", hp_ratio: float = 0.4,
-                   lp_ratio: float = 0.1) -> torch.Tensor:  # fmt: skip
-    """L_hf of one scale for [C,H,W] images."""
+def reference_frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", hp_ratio: float = 0.4,
+                             lp_ratio: float = 0.1) -> torch.Tensor:  # fmt: skip
+    """L_hf of one scale for [C,H,W] images, written on the full centred spectrum (slow; the oracle)."""
     h, w = render.shape[-2:]
     fr, fg = spectrum(render), spectrum(gt)
     loss = render.new_zeros(())
@@ -60,6 +62,49 @@ def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", h
     if mode in ("low", "low_high"):
         m = lowpass_mask(h, w, lp_ratio, render.device)
         loss = loss + amplitude_loss(fr, fg, m) + phase_loss(fr, fg, m)
+    return loss
+
+
+@functools.lru_cache(maxsize=32)
+def half_weights(mask_kind: str, h: int, w: int, ratio: float, device: str) -> torch.Tensor:
+    """[H, W//2+1] weights of rfft2 entries: how many full-spectrum entries of the mask each stands for.
+
+    A real image's spectrum is conjugate-symmetric, F(-k) = conj F(k), so |F| and |angle F| agree at
+    k and -k; entry (ky, kx) of the half spectrum stands for itself and its mirror, except the
+    columns kx = 0 and kx = W/2 (W even) whose mirrors are in the half spectrum already.
+    """
+    make = highpass_mask if mask_kind == "high" else lowpass_mask
+    m = torch.fft.ifftshift(make(h, w, ratio), dim=(0, 1))  # mask in unshifted frequency order
+    half = w // 2 + 1
+    mirror = m[(-torch.arange(h)) % h][:, (-torch.arange(half)) % w]
+    weights = m[:, :half] + mirror
+    weights[:, 0] = m[:, 0]
+    if w % 2 == 0:
+        weights[:, w // 2] = m[:, w // 2]
+    return weights.to(device)
+
+
+def frequency_loss(render: torch.Tensor, gt: torch.Tensor, mode: str = "high", hp_ratio: float = 0.4,
+                   lp_ratio: float = 0.1) -> torch.Tensor:  # fmt: skip
+    """L_hf of one scale for [C,H,W] images: reference_frequency_loss on the half spectrum (rfft2).
+
+    Equal to the full-spectrum definition up to float rounding, at about half the cost and without
+    the fftshift copies.
+    """
+    c, h, w = render.shape[-3:]
+    fr = torch.fft.rfft2(render, dim=(-2, -1))
+    with torch.no_grad():
+        fg = torch.fft.rfft2(gt, dim=(-2, -1))
+    dev = str(render.device)
+    loss = render.new_zeros(())
+    if mode in ("high", "low_high"):
+        wt = half_weights("high", h, w, hp_ratio, dev)
+        loss = loss + (wt * (fr.abs() - fg.abs()).abs()).sum() / (c * h * w)
+    if mode in ("low", "low_high"):
+        wt = half_weights("low", h, w, lp_ratio, dev)
+        loss = loss + (wt * (fr.abs() - fg.abs()).abs()).sum() / (c * h * w)
+        phase = (torch.angle(fr) - torch.angle(fg)).abs()
+        loss = loss + (wt * phase).sum() / (wt.sum() * c).clamp_min(1.0)
     return loss
 
 

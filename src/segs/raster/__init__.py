@@ -6,8 +6,9 @@
 
 Backends, one call: ``"cuda"`` (gsplat, CUDA tensors), ``"cpu"`` (C++ with OpenMP + SIMD, built
 on first use and cached), ``"torch"`` (pure PyTorch, the reference), ``"auto"`` (cuda for CUDA
-tensors, else cpu, falling back to torch with a one-time warning). This package imports nothing
-else of segs.
+tensors, else cpu, falling back to torch with a one-time warning). The same C++ build also
+carries ``fused_ssim``, the SSIM loss with its backward pass in one kernel (CPU, float32). This
+package imports nothing else of segs.
 """
 from __future__ import annotations
 
@@ -19,8 +20,10 @@ from . import _cpu_backend, _cuda_backend, _torch_backend
 from ._backends import BackendUnavailableError, available_backends, resolve
 from ._build import BuildError
 from ._checks import check_inputs
+from ._ssim import fused_ssim, fused_ssim_available
 
-__all__ = ["Render", "rasterize", "available_backends", "BackendUnavailableError", "BuildError"]
+__all__ = ["Render", "rasterize", "available_backends", "BackendUnavailableError", "BuildError", "fused_ssim",
+           "fused_ssim_available"]
 
 
 @dataclass

@@ -23,8 +23,8 @@ from pathlib import Path
 from types import ModuleType
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ("bindings.cpp", "projection.cpp", "binning.cpp", "forward.cpp", "backward.cpp")
-HEADERS = ("raster.h", "projection.h", "simd.h", "pool.h")
+SOURCES = ("bindings.cpp", "projection.cpp", "binning.cpp", "forward.cpp", "backward.cpp", "ssim.cpp")
+HEADERS = ("raster.h", "projection.h", "simd.h", "pool.h", "ssim.h")
 _lock = threading.Lock()
 _module: ModuleType | None = None
 _error: str | None = None

@@ -9,6 +9,7 @@
 
 #include "projection.h"
 #include "raster.h"
+#include "ssim.h"
 
 namespace py = pybind11;
 using segs_raster::State;
@@ -77,10 +78,33 @@ void project_backward(std::uintptr_t means, std::uintptr_t quats, std::uintptr_t
   segs_raster::project_backward(in, g, out, threads);
 }
 
+segs_raster::SsimIn ssim_in(std::uintptr_t render, std::uintptr_t target, std::uintptr_t window,
+                           int channels, int height, int width, int taps, float c1, float c2,
+                           float eps) {
+  return {ptr<const float>(render), ptr<const float>(target), ptr<const float>(window),
+          channels, height, width, taps, c1, c2, eps};
+}
+
+double ssim_forward(std::uintptr_t render, std::uintptr_t target, std::uintptr_t window,
+                    int channels, int height, int width, int taps, float c1, float c2, float eps,
+                    std::uintptr_t saved, int threads) {
+  auto in = ssim_in(render, target, window, channels, height, width, taps, c1, c2, eps);
+  return segs_raster::ssim_forward(in, ptr<float>(saved), threads);
+}
+
+void ssim_backward(std::uintptr_t render, std::uintptr_t target, std::uintptr_t window,
+                   int channels, int height, int width, int taps, float c1, float c2, float eps,
+                   std::uintptr_t saved, float grad_mean, std::uintptr_t grad_render,
+                   int threads) {
+  auto in = ssim_in(render, target, window, channels, height, width, taps, c1, c2, eps);
+  segs_raster::ssim_backward(in, ptr<const float>(saved), grad_mean, ptr<float>(grad_render),
+                             threads);
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "segs.raster CPU kernels (see csrc/raster.h)";
+  m.doc() = "segs.raster CPU kernels (see csrc/raster.h, csrc/ssim.h)";
   py::class_<State>(m, "State")
       .def_readonly("n_gaussians", &State::n)
       .def_property_readonly("n_listed", [](const State& s) { return s.gs.size(); })
@@ -90,4 +114,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("backward", &backward, py::call_guard<py::gil_scoped_release>());
   m.def("project_forward", &project_forward, py::call_guard<py::gil_scoped_release>());
   m.def("project_backward", &project_backward, py::call_guard<py::gil_scoped_release>());
+  m.def("ssim_forward", &ssim_forward, py::call_guard<py::gil_scoped_release>());
+  m.def("ssim_backward", &ssim_backward, py::call_guard<py::gil_scoped_release>());
 }
