@@ -46,8 +46,10 @@ class KeypointGrid:
         owner, pos = expand_ranges(a, b - a)
         qi = qi[owner]
         ki = self.order[pos]
-        d2 = ((self.uv[ki] - q[qi]) ** 2).sum(1)
-        ok = d2 <= radius[qi] ** 2
+        dx = self.uv[ki, 0] - q[qi, 0]
+        dy = self.uv[ki, 1] - q[qi, 1]
+        rq = radius[qi]
+        ok = dx * dx + dy * dy <= rq * rq
         return qi[ok], ki[ok]
 
 

@@ -84,6 +84,10 @@ def _pose_residuals(x, w2c0, P, uv, ur, w, K, bf, stereo, w_ur):
     rv = (fy * Y + K[1, 2] - uv[:, 1]) * w
     Jl = _so3_left_jacobian(x[:3])
     n = len(P)
+    ns = int(stereo.sum()) if stereo is not None else 0
+    res = np.empty(2 * n + ns)
+    res[:n], res[n : 2 * n] = ru, rv
+    J = np.empty((2 * n + ns, 6))  # rows: u residuals, v residuals, stereo residuals
     # d u / d pc = fx/z [1, 0, -X];  d v / d pc = fy/z [0, 1, -Y];  d pc / d (omega, t) = [-[rq]x Jl, I]
     du = np.zeros((n, 3))
     du[:, 0] = fx * iz
@@ -91,17 +95,20 @@ def _pose_residuals(x, w2c0, P, uv, ur, w, K, bf, stereo, w_ur):
     dv = np.zeros((n, 3))
     dv[:, 1] = fy * iz
     dv[:, 2] = -fy * Y * iz
-    Ju = np.hstack([_cross(rq, du) @ Jl, du]) * w[:, None]
-    Jv = np.hstack([_cross(rq, dv) @ Jl, dv]) * w[:, None]
-    res, J = [ru, rv], [Ju, Jv]
-    if stereo is not None and stereo.any():
+    wc = w[:, None]
+    np.multiply(_cross(rq, du) @ Jl, wc, out=J[:n, :3])
+    np.multiply(du, wc, out=J[:n, 3:])
+    np.multiply(_cross(rq, dv) @ Jl, wc, out=J[n : 2 * n, :3])
+    np.multiply(dv, wc, out=J[n : 2 * n, 3:])
+    if ns:
         s = stereo
         ws = w_ur[s]
-        res.append((bf * iz[s] - (uv[s, 0] - ur[s])) * ws)
-        dr = np.zeros((int(s.sum()), 3))
+        res[2 * n :] = (bf * iz[s] - (uv[s, 0] - ur[s])) * ws
+        dr = np.zeros((ns, 3))
         dr[:, 2] = -bf * iz[s] * iz[s]
-        J.append(np.hstack([_cross(rq[s], dr) @ Jl, dr]) * ws[:, None])
-    return np.concatenate(res), np.concatenate(J)
+        np.multiply(_cross(rq[s], dr) @ Jl, ws[:, None], out=J[2 * n :, :3])
+        np.multiply(dr, ws[:, None], out=J[2 * n :, 3:])
+    return res, J
 
 
 def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray | None,

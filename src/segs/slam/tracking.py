@@ -367,8 +367,9 @@ class Tracker(StateFields):
         key = (tuple(sorted(local)), m.version)
         if key != self._local_key:
             allp = np.concatenate([m.kfs[k].points for k in local])
-            allp = np.unique(allp[allp >= 0])
-            self._local_pids = allp[m.valid[allp]]
+            seen_p = np.zeros(len(m.valid), bool)  # sorted unique ids without a sort
+            seen_p[allp[allp >= 0]] = True
+            self._local_pids = np.flatnonzero(seen_p & m.valid)
             self._local_key = key
         self._local_kfs = local
 
@@ -396,8 +397,9 @@ class Tracker(StateFields):
     def _search_local(self, frame: SlamFrame, th: float) -> int:
         m, cam, cfg, mc = self.map, self.setup.camera, self.cfg, self.match_cfg
         pids = self._local_pids
-        pids = pids[m.valid[pids]]
-        pids = np.setdiff1d(pids, frame.points[frame.points >= 0], assume_unique=False)
+        taken = np.zeros(len(m.valid), bool)  # points the frame already matched
+        taken[frame.points[frame.points >= 0]] = True
+        pids = pids[m.valid[pids] & ~taken[pids]]
         if len(pids) == 0:
             return 0
         P = m.pos[pids]
