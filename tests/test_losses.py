@@ -34,7 +34,8 @@ def test_fused_ssim_equals_kornia_in_value_and_gradient(size):
     render = render64.detach().float().requires_grad_()
     if not fused_ssim_available(render.permute(2, 0, 1), 11):
         pytest.skip("the C++ kernels cannot be built here")
-    ours = fused_ssim(render.permute(2, 0, 1), gt64.float().permute(2, 0, 1))  # non-contiguous views
+    window = kornia.filters.get_gaussian_kernel1d(11, 1.5).flatten()
+    ours = fused_ssim(render.permute(2, 0, 1), gt64.float().permute(2, 0, 1), window, 0.01**2, 0.03**2)  # non-contiguous views
     (g_ours,) = torch.autograd.grad(3.0 * ours, render)
     ref = kornia.metrics.ssim(losses.to_bchw(render64), losses.to_bchw(gt64), 11, max_val=1.0).mean()
     (g_ref,) = torch.autograd.grad(3.0 * ref, render64)
@@ -52,7 +53,7 @@ def test_loss_ssim_takes_the_fused_kernel_on_cpu_float32_and_kornia_otherwise(mo
     assert not fused_ssim_available(render.permute(2, 0, 1), 11)
     assert float(losses.ssim(render, gt)) == pytest.approx(fused, abs=1e-6)
     with pytest.raises(ValueError, match="one shape"):
-        fused_ssim(render.permute(2, 0, 1), gt[:-1].permute(2, 0, 1))
+        fused_ssim(render.permute(2, 0, 1), gt[:-1].permute(2, 0, 1), torch.ones(3) / 3, 0.01**2, 0.03**2)
 
 
 def test_ssim_of_identical_images_is_one():
