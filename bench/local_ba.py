@@ -5,13 +5,15 @@ Tracks the first --frames frames of the shared 7-Scenes sequence with the fronte
 problem (poses, fixed keyframes, points, observations). Then, on the last --problems of them
 (the map is warm there), it times with the machine otherwise unchanged:
 
-- the parts: building the gtsam factors, one linearisation, one linearisation + elimination
+- the parts: building the gtsam factors (from nothing, and after the previous problem's, whose
+  factors BundleAdjuster reuses), one linearisation, one linearisation + elimination
   (with the elimination order BundleAdjuster uses and with gtsam's default COLAMD order), one
   error evaluation;
 - whole optimisations: solver / order variants and iteration budgets, with the final cost
   (sum of robust squared whitened errors) relative to the 5+10 reference;
-- BundleAdjuster.run_two_pass as the frontend calls it (the figure in fe.mapper.ba_times, minus
-  reading / writing the map).
+- BundleAdjuster.run_two_pass as the frontend calls it, each call after the previous problem's
+  (the figure in fe.mapper.ba_times, minus reading / writing the map), with the configured and
+  other iteration budgets.
 
 Medians over problems, each timed --repeat times (the median of those). JSON: outputs/bench/local_ba.json.
 
@@ -35,6 +37,7 @@ from segs.slam import optimize
 from segs.slam.optimize import BundleAdjuster
 
 ROOT = Path(__file__).resolve().parents[1]
+NO_FACTORS = (np.zeros(0, np.int64), np.zeros((0, 4)), [])  # an empty BundleAdjuster factor cache
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
 
 
@@ -81,9 +84,11 @@ def optimise(graph, values, order, iterations: int, solver: str, method: str = "
     return time.perf_counter() - t, graph.error(result), opt.iterations()
 
 
-def timed(fn, repeat: int) -> float:
+def timed(fn, repeat: int, setup=None) -> float:
     ts = []
     for _ in range(repeat):
+        if setup is not None:
+            setup()
         t = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t)
@@ -108,16 +113,27 @@ def main() -> None:
         rows.setdefault(name, []).append(value)
 
     variants = [("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", (5, 10)),
-                ("BundleAdjuster.run_two_pass, the configured iterations", "config")] + [
+                ("BundleAdjuster.run_two_pass, the configured iterations", "config"),
+                ("BundleAdjuster.run_two_pass, LM", (4, 2)),
+                ("BundleAdjuster.run_two_pass, LM", (4, 1))] + [
         (f"{m} {it} it, {solver.split('_')[0].lower()} Cholesky, {'points-first' if schur else 'COLAMD'}", (m, it, solver, schur))
         for m, it, solver, schur in [("LM", 5, "MULTIFRONTAL_CHOLESKY", False), ("LM", 5, "SEQUENTIAL_CHOLESKY", True),
                                      ("LM", 10, "SEQUENTIAL_CHOLESKY", True), ("LM", 3, "SEQUENTIAL_CHOLESKY", True),
                                      ("GN", 3, "SEQUENTIAL_CHOLESKY", True)]]  # fmt: skip
-    for poses, fixed, points, obs, iterations in problems:
+    previous = problems[0][3]
+    for poses, fixed, points, obs, iterations in problems[1:]:
+        # BundleAdjuster reuses the factors of its previous call: time each call after the
+        # previous problem's, as in a run
+        def after_previous(previous=previous):
+            ba._factors(previous)
+
         add("observations", len(obs.kf))
         add("points", len(points))
         add("keyframes (optimised + fixed)", len(poses))
-        add("build factors + values (ms)", 1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat))
+        add("build factors + values (ms)", 1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat,
+                                                         lambda: setattr(ba, "_factor_cache", NO_FACTORS)))
+        add("build factors + values after the previous problem's (ms)",
+            1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat, after_previous))
         graph, values = graph_of(ba, poses, fixed, points, obs)
         order = optimize._schur_ordering(poses, points)
         add("one linearisation (ms)", 1e3 * timed(lambda: graph.linearize(values), args.repeat))
@@ -129,7 +145,8 @@ def main() -> None:
         for name, v in variants:
             if not isinstance(v, tuple) or len(v) == 2:
                 its = iterations if v == "config" else v
-                add(f"{name} {its} (ms)", 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its), args.repeat))
+                add(f"{name} {its} (ms)", 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its), args.repeat,
+                                                      after_previous))
                 continue
             m, it, solver, schur = v
             secs, err, its = zip(*[optimise(graph, values, order if schur else None, it, solver, m) for _ in range(args.repeat)])
@@ -138,6 +155,7 @@ def main() -> None:
                 ref_error = optimise(graph, values, order, 5, "SEQUENTIAL_CHOLESKY")[1]
             add(name + ": final cost / LM-5 cost", err[0] / ref_error)
             add(name + ": iterations", its[0])
+        previous = obs
     table = {k: statistics.median(v) for k, v in rows.items()}
     print(f"local BA on {len(problems)} problems of 7-Scenes {args.sensor} frames 0-{args.frames} "
           f"(load {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}); medians:")

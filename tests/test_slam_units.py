@@ -16,7 +16,8 @@ from segs.slam.frame import KeypointGrid
 from segs.slam.geometry import inv_se3, umeyama
 from segs.slam.initialization import MonoInitializer
 from segs.slam.ba_process import BundleAdjusterProcess
-from segs.slam.optimize import BundleAdjuster, Observations, _sim3, _sim3_matrix, pose_graph, refine_pose
+from segs.slam.optimize import (BundleAdjuster, Observations, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
+                                refine_pose)
 from segs.slam.orb import OrbFrontend
 from segs.slam.runner import run_sequence
 from segs.slam.vocabulary import Vocabulary, bow_score
@@ -125,6 +126,46 @@ def test_bundle_adjustment_recovers_poses_and_points(stereo):
     err = np.array([np.linalg.norm(new_points[i] - P[i]) for i in range(len(P))])
     err0 = np.array([np.linalg.norm(pts[i] - P[i]) for i in range(len(P))])
     assert np.median(err) < 0.5 * np.median(err0)
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_pose_jacobian_matches_finite_differences(stereo):
+    rng = np.random.default_rng(4)
+    P = rng.uniform([-2, -1.5, 2], [2, 1.5, 6], (40, 3))
+    T = _pose([0.05, -0.1, 0.02], [0.1, -0.05, 0.2])
+    uv, z = _project(T, P)
+    ur = uv[:, 0] - 30.0 / z if stereo else None
+    w = rng.uniform(0.5, 1.0, len(P))
+    args = (P, uv + rng.normal(0, 1.0, uv.shape), ur, w, K, 30.0, ur >= 0 if stereo else None, w * 0.7)
+    r0, J = _pose_system(T, *args)
+    assert r0.shape == (2 * len(P) + (int((ur >= 0).sum()) if stereo else 0),) and J.shape == (len(r0), 6)
+    num = np.empty_like(J)
+    for j in range(6):
+        dx = np.zeros(6)
+        dx[j] = 1e-7
+        num[:, j] = (_pose_system(_se3_exp(dx) @ T, *args)[0] - r0) / 1e-7
+    assert np.allclose(num, J, rtol=1e-4, atol=1e-3)
+
+
+def test_bundle_adjuster_reuses_factors_only_for_equal_observations():
+    rng = np.random.default_rng(3)
+    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (50, 3))
+    poses = {k: _pose([0, 0.02 * k, 0], [-0.2 * k, 0, 0]) for k in range(3)}
+    kf, pid = np.repeat(np.arange(3), len(P)), np.tile(np.arange(len(P)), 3)
+    uv = np.concatenate([_project(T, P)[0] for T in poses.values()]) + rng.normal(0, 0.3, (len(kf), 2))
+    obs = Observations(kf, pid, uv, np.full(len(kf), -1.0), np.zeros(len(kf), np.int64))
+    ba = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8))
+    first = ba._factors(obs)
+    moved = Observations(kf[::-1], pid[::-1], uv[::-1].copy(), obs.ur, obs.octave)  # same, reversed
+    moved.uv[0] += 2.0  # the last observation, measured elsewhere
+    second = ba._factors(moved)[::-1]
+    assert all(second[i] is first[i] for i in range(len(kf) - 1))
+    assert second[-1] is not first[-1] and np.allclose(second[-1].measured(), uv[-1] + 2.0)
+    pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(len(P))}
+    warm = ba.run(poses, {0}, pts, moved, 10)  # factors from the cache give a fresh adjuster's result
+    cold = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8)).run(poses, {0}, pts, moved, 10)
+    assert all(np.array_equal(warm[0][k], cold[0][k]) for k in poses)
+    assert all(np.array_equal(warm[1][i], cold[1][i]) for i in pts)
 
 
 def test_pose_graph_spreads_loop_error_and_sim3_conversion():

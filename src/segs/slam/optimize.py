@@ -53,62 +53,63 @@ def _se3_exp(x: np.ndarray) -> np.ndarray:
     return T
 
 
-def _so3_left_jacobian(w: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3) at rotation vector w [3] -> [3,3]."""
-    th = float(np.linalg.norm(w))
-    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if th < 1e-8:
-        return np.eye(3) + 0.5 * W
-    return np.eye(3) + (1 - np.cos(th)) / th ** 2 * W + (th - np.sin(th)) / th ** 3 * (W @ W)
+def _pose_system(w2c: np.ndarray, P, uv, ur, w, K, bf, stereo, w_ur) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened reprojection residuals [R] (u rows [M], v rows [M], stereo rows [S]) and their
+    Jacobian [R,6] wrt a left increment (rotation vector, translation) of w2c at zero.
 
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of [N,3] arrays (faster than np.cross for small N)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
-
-
-def _pose_residuals(x, w2c0, P, uv, ur, w, K, bf, stereo, w_ur):
-    """Whitened reprojection residuals [2M (+ stereo count)] and Jacobian wrt a left increment x [6]."""
-    T = _se3_exp(x) @ w2c0
-    pc = P @ T[:3, :3].T + T[:3, 3]
-    rq = pc - x[3:]  # exp(omega) applied to the points in the start camera frame (before + v)
-    z = np.maximum(pc[:, 2], 1e-6)
-    iz = 1.0 / z
-    fx, fy = K[0, 0], K[1, 1]
+    P [M,3] points, uv [M,2] keypoints, ur [M] right coordinates, w [M] / w_ur [M] weights,
+    stereo [M] bool or None. The closed forms are ORB-SLAM's pose-only edges: with X = x/z,
+    Y = y/z, du/d(omega) = fx (-XY, 1 + X^2, -Y), dv/d(omega) = fy (-(1 + Y^2), XY, X).
+    """
+    pc = P @ w2c[:3, :3].T + w2c[:3, 3]
+    iz = 1.0 / np.maximum(pc[:, 2], 1e-6)
     X, Y = pc[:, 0] * iz, pc[:, 1] * iz
-    ru = (fx * X + K[0, 2] - uv[:, 0]) * w
-    rv = (fy * Y + K[1, 2] - uv[:, 1]) * w
-    Jl = _so3_left_jacobian(x[:3])
     n = len(P)
     ns = int(stereo.sum()) if stereo is not None else 0
-    res = np.empty(2 * n + ns)
-    res[:n], res[n : 2 * n] = ru, rv
-    J = np.empty((2 * n + ns, 6))  # rows: u residuals, v residuals, stereo residuals
-    # d u / d pc = fx/z [1, 0, -X];  d v / d pc = fy/z [0, 1, -Y];  d pc / d (omega, t) = [-[rq]x Jl, I]
-    du = np.zeros((n, 3))
-    du[:, 0] = fx * iz
-    du[:, 2] = -fx * X * iz
-    dv = np.zeros((n, 3))
-    dv[:, 1] = fy * iz
-    dv[:, 2] = -fy * Y * iz
-    wc = w[:, None]
-    np.multiply(_cross(rq, du) @ Jl, wc, out=J[:n, :3])
-    np.multiply(du, wc, out=J[:n, 3:])
-    np.multiply(_cross(rq, dv) @ Jl, wc, out=J[n : 2 * n, :3])
-    np.multiply(dv, wc, out=J[n : 2 * n, 3:])
-    if ns:
+    r = np.empty(2 * n + ns)
+    J = np.zeros((2 * n + ns, 6))
+    fw, gw, XY = K[0, 0] * w, K[1, 1] * w, X * Y
+    r[:n] = (K[0, 0] * X + K[0, 2] - uv[:, 0]) * w
+    r[n : 2 * n] = (K[1, 1] * Y + K[1, 2] - uv[:, 1]) * w
+    Ju, Jv = J[:n], J[n : 2 * n]
+    Ju[:, 0], Ju[:, 1], Ju[:, 2] = -fw * XY, fw * (1.0 + X * X), -fw * Y
+    Ju[:, 3], Ju[:, 5] = fw * iz, -fw * X * iz
+    Jv[:, 0], Jv[:, 1], Jv[:, 2] = -gw * (1.0 + Y * Y), gw * XY, gw * X
+    Jv[:, 4], Jv[:, 5] = gw * iz, -gw * Y * iz
+    if ns:  # disparity residual bf/z - (u - ur): d/d(pc) = (0, 0, -bf/z^2)
         s = stereo
-        ws = w_ur[s]
-        res[2 * n :] = (bf * iz[s] - (uv[s, 0] - ur[s])) * ws
-        dr = np.zeros((ns, 3))
-        dr[:, 2] = -bf * iz[s] * iz[s]
-        np.multiply(_cross(rq[s], dr) @ Jl, ws[:, None], out=J[2 * n :, :3])
-        np.multiply(dr, ws[:, None], out=J[2 * n :, 3:])
-    return res, J
+        izs, ws = iz[s], w_ur[s]
+        r[2 * n :] = (bf * izs - (uv[s, 0] - ur[s])) * ws
+        b = bf * izs * ws
+        Js = J[2 * n :]
+        Js[:, 0], Js[:, 1], Js[:, 5] = -b * Y[s], b * X[s], -b * izs
+    return r, J
+
+
+def _solve_pose(w2c: np.ndarray, args: tuple, evaluations: int) -> np.ndarray:
+    """Levenberg-Marquardt (Marquardt's diagonal damping) on a w2c [4,4] with _pose_system(args);
+    at most `evaluations` residual evaluations, stopping when the cost or the step stalls."""
+    r, J = _pose_system(w2c, *args)
+    cost, lam = float(r @ r), 1e-4
+    for _ in range(evaluations - 1):
+        H, g = J.T @ J, J.T @ r
+        try:
+            dx = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
+        except np.linalg.LinAlgError:
+            break
+        T = _se3_exp(dx) @ w2c
+        r2, J2 = _pose_system(T, *args)
+        cost2 = float(r2 @ r2)
+        if cost2 < cost:
+            stalled = cost - cost2 <= 1e-8 * cost or float(dx @ dx) < 1e-20
+            w2c, r, J, cost, lam = T, r2, J2, cost2, max(lam * 0.1, 1e-10)
+            if stalled:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e6:
+                break
+    return w2c
 
 
 def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray | None,
@@ -117,8 +118,9 @@ def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray 
                 ur_sigma: float | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only bundle adjustment of a w2c from map points P [M,3] and keypoints uv [M,2].
 
-    ORB-SLAM's PoseOptimization: `rounds` optimisations (scipy least_squares, trust region,
-    Huber loss at sqrt(5.991), residuals whitened by the keypoint's octave sigma; stereo /
+    ORB-SLAM's PoseOptimization: `rounds` optimisations (Levenberg-Marquardt on the 6-DOF
+    increment, at most `iterations` residual evaluations each, Huber loss at sqrt(5.991) by
+    reweighting, residuals whitened by the keypoint's octave sigma; stereo /
     RGB-D observations (ur >= 0) add the right-image coordinate); after each round every match
     is classified by its chi2 against 5.991 / 7.815 and only inliers enter the next.
     warm: the start pose is already refined (no gradual widening of the kernel in round one).
@@ -148,45 +150,15 @@ def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray 
                                          inv_sigma2[inl], K, bf, ur_sigma)
                 e = np.sqrt(chi2)
                 hw = np.sqrt(np.where(e > sc * huber, sc * huber / np.maximum(e, 1e-12), 1.0))
-            args = (w2c, P[inl], uv[inl], ur[inl] if ur is not None else None, w[inl] * hw, K, bf,
+            args = (P[inl], uv[inl], ur[inl] if ur is not None else None, w[inl] * hw, K, bf,
                     stereo[inl] if stereo is not None else None, w_ur[inl] * hw)
-            w2c = orthonormalize(_se3_exp(_solve_lm(args, iterations)) @ w2c)
+            w2c = orthonormalize(_solve_pose(w2c, args, iterations))
         chi2, th, z = reproj_chi2(w2c, P, uv, ur, inv_sigma2, K, bf, ur_sigma)
         new = (chi2 < th) & (z > 0)
         if r > 0 and np.array_equal(new, inl):
             return w2c, new
         inl = new
     return w2c, inl
-
-
-class _CachedProblem:
-    """Residuals and Jacobian computed together once per x (MINPACK asks for them separately)."""
-
-    def __init__(self, args):
-        self.args, self.x, self.r, self.J = args, None, None, None
-
-    def _eval(self, x):
-        if self.x is None or not np.array_equal(x, self.x):
-            self.x = np.array(x)
-            self.r, self.J = _pose_residuals(x, *self.args)
-
-    def residuals(self, x):
-        self._eval(x)
-        return self.r
-
-    def jacobian(self, x):
-        self._eval(x)
-        return self.J
-
-
-def _solve_lm(args, iterations: int) -> np.ndarray:
-    """Levenberg-Marquardt (MINPACK lmder via scipy.optimize.leastsq) on the pose increment [6]."""
-    from scipy.optimize import leastsq
-
-    prob = _CachedProblem(args)
-    # full_output: an exhausted evaluation budget is an ordinary outcome here, not a warning
-    x = leastsq(prob.residuals, np.zeros(6), Dfun=prob.jacobian, maxfev=iterations, full_output=True)[0]
-    return np.asarray(x, np.float64)
 
 
 def pnp_ransac(P: np.ndarray, uv: np.ndarray, K: np.ndarray, reproj: float = 4.0,
@@ -266,19 +238,38 @@ class BundleAdjuster:
         self.noise2 = [robust(2, s, CHI2_MONO) for s in scales]
         self.noise3 = [robust(3, s, CHI2_STEREO) for s in scales]
         self.prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+        # the last call's factors, see _factors: (keys [F] sorted, measurements [F,4], factors)
+        self._factor_cache: tuple[np.ndarray, np.ndarray, list] = (np.zeros(0, np.int64), np.zeros((0, 4)), [])
 
     def _factors(self, obs: Observations) -> list:
-        """One gtsam factor per observation (stereo / RGB-D when ur >= 0, else monocular)."""
-        xs = (np.uint64(_X0) + obs.kf.astype(np.uint64)).tolist()
-        ls = (np.uint64(_L0) + obs.pid.astype(np.uint64)).tolist()
-        stereo, mono = gtsam.GenericStereoFactor3D, gtsam.GenericProjectionFactorCal3_S2
-        n3, n2, cal_st, cal = self.noise3, self.noise2, self.cal_st, self.cal
-        out = []
-        for x, lm, (u, v), r, o in zip(xs, ls, obs.uv.tolist(), obs.ur.tolist(), obs.octave.tolist()):
-            if r >= 0:
-                out.append(stereo(gtsam.StereoPoint2(u, r, v), n3[o], x, lm, cal_st))
-            else:
-                out.append(mono(np.array((u, v)), n2[o], x, lm, cal))
+        """One gtsam factor per observation (stereo / RGB-D when ur >= 0, else monocular).
+
+        Factors are immutable, and consecutive local BAs share most observations: a factor of
+        the previous call is reused where keyframe, point and measurement are the same, and only
+        this call's factors are kept for the next one (see bench/local_ba.py)."""
+        keys = (obs.kf.astype(np.int64) << 32) | obs.pid.astype(np.int64)
+        meas = np.column_stack([obs.uv, obs.ur, obs.octave]).astype(np.float64)
+        prev_keys, prev_meas, prev_factors = self._factor_cache
+        hit = np.full(len(keys), -1, np.int64)
+        if len(prev_keys):
+            pos = np.minimum(np.searchsorted(prev_keys, keys), len(prev_keys) - 1)
+            same = (prev_keys[pos] == keys) & (prev_meas[pos] == meas).all(axis=1)
+            hit[same] = pos[same]
+        out = [prev_factors[i] if i >= 0 else None for i in hit.tolist()]
+        miss = np.flatnonzero(hit < 0)
+        if len(miss):
+            stereo, mono = gtsam.GenericStereoFactor3D, gtsam.GenericProjectionFactorCal3_S2
+            n3, n2, cal_st, cal = self.noise3, self.noise2, self.cal_st, self.cal
+            xs = (np.uint64(_X0) + obs.kf[miss].astype(np.uint64)).tolist()
+            ls = (np.uint64(_L0) + obs.pid[miss].astype(np.uint64)).tolist()
+            for i, x, lm, (u, v), r, o in zip(miss.tolist(), xs, ls, obs.uv[miss].tolist(), obs.ur[miss].tolist(),
+                                              obs.octave[miss].tolist()):
+                if r >= 0:
+                    out[i] = stereo(gtsam.StereoPoint2(u, r, v), n3[o], x, lm, cal_st)
+                else:
+                    out[i] = mono(np.array((u, v)), n2[o], x, lm, cal)
+        order = np.argsort(keys, kind="stable")
+        self._factor_cache = (keys[order], meas[order], [out[i] for i in order.tolist()])
         return out
 
     def graph(self, poses, fixed, points, factors) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
