@@ -13,7 +13,7 @@ problem (poses, fixed keyframes, points, observations). Then, on the last --prob
   (sum of robust squared whitened errors) relative to the 5+10 reference;
 - BundleAdjuster.run_two_pass as the frontend calls it, each call after the previous problem's
   (the figure in fe.mapper.ba_times, minus reading / writing the map), with the configured and
-  other iteration budgets.
+  other iteration budgets / early stops (min_gain).
 
 Medians over problems, each timed --repeat times (the median of those). JSON: outputs/bench/local_ba.json.
 
@@ -50,9 +50,9 @@ def record_problems(sensor: str, frames: int) -> tuple[list, BundleAdjuster, dic
     problems = []
     original = optimize.BundleAdjuster.run_two_pass
 
-    def spy(self, poses, fixed, points, obs, iterations):
-        problems.append((dict(poses), set(fixed), dict(points), obs, tuple(iterations)))
-        return original(self, poses, fixed, points, obs, iterations)
+    def spy(self, poses, fixed, points, obs, iterations, min_gain=optimize.CONVERGED_GAIN):
+        problems.append((dict(poses), set(fixed), dict(points), obs, (tuple(iterations), min_gain)))
+        return original(self, poses, fixed, points, obs, iterations, min_gain)
 
     optimize.BundleAdjuster.run_two_pass = spy
     try:
@@ -112,10 +112,12 @@ def main() -> None:
     def add(name, value):
         rows.setdefault(name, []).append(value)
 
-    variants = [("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", (5, 10)),
-                ("BundleAdjuster.run_two_pass, the configured iterations", "config"),
-                ("BundleAdjuster.run_two_pass, LM", (4, 2)),
-                ("BundleAdjuster.run_two_pass, LM", (4, 1))] + [
+    tol = optimize.CONVERGED_GAIN
+    variants = [("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", ((5, 10), tol)),
+                ("BundleAdjuster.run_two_pass, the configured iterations, min_gain", "config"),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 4), tol)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 1), tol)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol))] + [
         (f"{m} {it} it, {solver.split('_')[0].lower()} Cholesky, {'points-first' if schur else 'COLAMD'}", (m, it, solver, schur))
         for m, it, solver, schur in [("LM", 5, "MULTIFRONTAL_CHOLESKY", False), ("LM", 5, "SEQUENTIAL_CHOLESKY", True),
                                      ("LM", 10, "SEQUENTIAL_CHOLESKY", True), ("LM", 3, "SEQUENTIAL_CHOLESKY", True),
@@ -144,9 +146,9 @@ def main() -> None:
         ref_error = None
         for name, v in variants:
             if not isinstance(v, tuple) or len(v) == 2:
-                its = iterations if v == "config" else v
-                add(f"{name} {its} (ms)", 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its), args.repeat,
-                                                      after_previous))
+                its, gain = iterations if v == "config" else v
+                add(f"{name} {its} {gain:g} (ms)", 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its, gain),
+                                                               args.repeat, after_previous))
                 continue
             m, it, solver, schur = v
             secs, err, its = zip(*[optimise(graph, values, order if schur else None, it, solver, m) for _ in range(args.repeat)])

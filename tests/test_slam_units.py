@@ -168,6 +168,25 @@ def test_bundle_adjuster_reuses_factors_only_for_equal_observations():
     assert all(np.array_equal(warm[1][i], cold[1][i]) for i in pts)
 
 
+def test_bundle_adjuster_min_gain_stops_the_first_pass_early():
+    rng = np.random.default_rng(5)
+    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (60, 3))
+    poses = {k: _pose([0, 0.03 * k, 0], [-0.25 * k, 0, 0]) for k in range(4)}
+    kf, pid = np.repeat(np.arange(4), len(P)), np.tile(np.arange(len(P)), 4)
+    uv = np.concatenate([_project(T, P)[0] for T in poses.values()]) + rng.normal(0, 0.5, (len(kf), 2))
+    obs = Observations(kf, pid, uv, np.full(len(kf), -1.0), np.zeros(len(kf), np.int64))
+    start = {k: T @ _pose(rng.normal(0, 0.01, 3), rng.normal(0, 0.02, 3)) if k else T for k, T in poses.items()}
+    pts = {i: P[i] + rng.normal(0, 0.1, 3) for i in range(len(P))}
+
+    def result(iterations, min_gain):
+        out = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8)).run_two_pass(start, {0}, pts, obs, iterations, min_gain)
+        return np.concatenate([out[0][k].ravel() for k in poses] + [out[1][i] for i in pts])
+
+    # no iteration can lower a positive cost by all of it: min_gain=1 stops after the first
+    assert np.array_equal(result((4, 1), 1.0), result((1, 1), 1e-5))
+    assert not np.array_equal(result((4, 1), 1e-5), result((1, 1), 1e-5))
+
+
 def test_pose_graph_spreads_loop_error_and_sim3_conversion():
     chain = {k: _pose([0, 0, 0], [-float(k), 0, 0]) for k in range(5)}
     init = dict(chain)

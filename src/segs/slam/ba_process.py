@@ -15,7 +15,7 @@ import threading
 
 import numpy as np
 
-from segs.slam.optimize import BundleAdjuster
+from segs.slam.optimize import CONVERGED_GAIN, BundleAdjuster
 
 
 class BundleAdjusterProcess:
@@ -40,9 +40,9 @@ class BundleAdjusterProcess:
         """As BundleAdjuster.run, in the child process."""
         return self._call("run", poses, fixed, points, obs, iterations)
 
-    def run_two_pass(self, poses, fixed, points, obs, iterations):
+    def run_two_pass(self, poses, fixed, points, obs, iterations, min_gain=CONVERGED_GAIN):
         """As BundleAdjuster.run_two_pass, in the child process."""
-        return self._call("run_two_pass", poses, fixed, points, obs, iterations)
+        return self._call("run_two_pass", poses, fixed, points, obs, iterations, min_gain)
 
     def _call(self, method: str, *args):
         with self._lock:

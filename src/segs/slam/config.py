@@ -92,7 +92,8 @@ class MappingConfig:
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
     ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 10  # keyframes held fixed around the window
-    ba_iterations: tuple = (4, 4)  # LM iterations before / after removing outliers (0: one pass)
+    ba_iterations: tuple = (4, 1)  # LM iterations before / after removing outliers (0: one pass)
+    ba_min_gain: float = 0.01  # the first pass stops after an iteration gaining less than this fraction of the cost
     cull_points: bool = True
     min_found_ratio: float = 0.25
     recent_cull_age: int = 2  # keyframes after its creation: a point with few observers is culled ...

@@ -18,7 +18,7 @@ from segs.slam.config import MappingConfig, MatchingConfig
 from segs.slam.map import KeyFrame, Map
 from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
 from segs.slam.features import hamming_pairs
-from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, BundleAdjuster, Observations, reproj_chi2
+from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, CONVERGED_GAIN, BundleAdjuster, Observations, reproj_chi2
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
 from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
@@ -309,7 +309,7 @@ class LocalMapper(StateFields):
             if kf.kf_id not in m.kfs:
                 return
             window = [kf.kf_id] + [k for k in kf.covisible(self.cfg.ba_window - 1) if k in m.kfs]
-        self.run_ba(window, self.cfg.ba_fixed_max, self.cfg.ba_iterations)
+        self.run_ba(window, self.cfg.ba_fixed_max, self.cfg.ba_iterations, min_gain=self.cfg.ba_min_gain)
 
     def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None:
         """BA of kf_ids (default: all keyframes) with the origin fixed; fix_scale: see run_ba."""
@@ -319,7 +319,7 @@ class LocalMapper(StateFields):
         self.run_ba(window, 0, (iterations, iterations // 2), global_=True, fix_scale=fix_scale)
 
     def run_ba(self, window: list[int], fixed_max: int, iterations, global_: bool = False,
-               fix_scale: bool = True) -> None:
+               fix_scale: bool = True, min_gain: float = CONVERGED_GAIN) -> None:
         """Bundle adjustment of window keyframes + their points; observers outside stay fixed.
 
         fix_scale (monocular): with a single fixed keyframe the scale is a free gauge and LM
@@ -336,7 +336,7 @@ class LocalMapper(StateFields):
         if problem is None:
             return
         poses, fixed, points, obs, rigid = problem
-        new_poses, new_points, bad = self.ba.run_two_pass(poses, fixed, points, obs, iterations)
+        new_poses, new_points, bad = self.ba.run_two_pass(poses, fixed, points, obs, iterations, min_gain)
         if fix_scale and su.sensor == "mono" and len(fixed) == 1:
             self._keep_gauge_scale(poses[next(iter(fixed))], points, new_poses, new_points, fixed)
         with m.lock:

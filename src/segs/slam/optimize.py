@@ -206,6 +206,9 @@ def _schur_ordering(poses, points) -> gtsam.Ordering:
     return order
 
 
+CONVERGED_GAIN = 1e-5  # LM stops after an iteration that lowers the cost by less than this fraction
+
+
 class BundleAdjuster:
     """Local / global BA over keyframe poses and points with gtsam (Huber, LM).
 
@@ -287,11 +290,11 @@ class BundleAdjuster:
             graph.add(f)
         return graph, values
 
-    def _optimize(self, poses, fixed, points, factors, iterations):
+    def _optimize(self, poses, fixed, points, factors, iterations, min_gain=CONVERGED_GAIN):
         graph, values = self.graph(poses, fixed, points, factors)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(iterations))
-        params.setRelativeErrorTol(1e-5)
+        params.setRelativeErrorTol(float(min_gain))
         # points first, poses last: the elimination is the Schur complement of BA (a dense
         # reduced camera system); sequential Cholesky is 10-15 % faster than the multifrontal
         # default here, with the same steps (bench/local_ba.py)
@@ -310,13 +313,14 @@ class BundleAdjuster:
         return self._optimize(poses, fixed, points, self._factors(obs), iterations)
 
     def run_two_pass(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
-                     obs: Observations, iterations: tuple[int, int]):
+                     obs: Observations, iterations: tuple[int, int], min_gain: float = CONVERGED_GAIN):
         """ORB-SLAM's local BA: optimise, drop the observations that fail the chi2 test, optimise
         again without them (reusing the factors). -> (poses, points, outlier mask [O] after the
-        last pass)."""
+        last pass). The first pass stops early after an iteration that lowered the cost by less
+        than the fraction min_gain."""
         it1, it2 = (tuple(iterations) + (0,))[:2]
         factors = self._factors(obs)
-        new_poses, new_points = self._optimize(poses, fixed, points, factors, it1)
+        new_poses, new_points = self._optimize(poses, fixed, points, factors, it1, min_gain)
         bad = self._bad(new_poses, new_points, obs)
         if it2 > 0 and bad.any():
             keep = np.flatnonzero(~bad)
