@@ -53,7 +53,8 @@ def main() -> None:
     args = ap.parse_args()
     if not (SEVEN_SCENES / "seq").is_dir():
         raise SystemExit(f"bench/slam_modes.py: the 7-Scenes frames are not at {SEVEN_SCENES}")
-    out = ROOT / "outputs" / "bench" / "slam_modes"
+    # a folder per invocation: segs.train refuses a run folder that already holds a finished run
+    out = ROOT / "outputs" / "bench" / "slam_modes" / time.strftime("%Y-%m-%d_%H-%M-%S")
     rows = []
     for mode in args.modes:
         load = os.getloadavg()[0]
