@@ -15,6 +15,7 @@ from segs.slam.features import OrbExtractor, hamming, hamming_matrix, to_gray
 from segs.slam.frame import KeypointGrid
 from segs.slam.geometry import inv_se3, umeyama
 from segs.slam.initialization import MonoInitializer
+from segs.slam.matching import knn_hamming
 from segs.slam.ba_process import BundleAdjusterProcess
 from segs.slam.optimize import (BundleAdjuster, Observations, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
                                 refine_pose)
@@ -67,6 +68,20 @@ def test_hamming_matches_opencv(image):
     ref = np.array([[cv2.norm(a, b, cv2.NORM_HAMMING) for b in d[:20]] for a in d[:30]])
     assert np.array_equal(hamming_matrix(d[:30], d[:20]), ref)
     assert np.array_equal(hamming(d[:20], d[:20][::-1]), np.diag(ref[:20, :20][:, ::-1]))
+
+
+def test_knn_hamming_equals_bfmatcher_knn_including_ties():
+    rng = np.random.default_rng(6)
+    a = rng.integers(0, 256, (200, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (150, 32), dtype=np.uint8)
+    b[:60] = a[:60] ^ (rng.random((60, 32)) < 0.05).astype(np.uint8)  # near duplicates
+    b[60:70] = b[50:60]  # exact ties
+    for db, k in ((b, 8), (b[:3], 8), (b, 2)):
+        dist, nidx = knn_hamming(a, db, k)
+        ref = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, db, k=k)
+        for i, ms in enumerate(ref):
+            assert [m.trainIdx for m in ms] == nidx[i][nidx[i] >= 0].tolist()
+            assert [m.distance for m in ms] == dist[i][nidx[i] >= 0].tolist()
 
 
 def test_keypoint_grid_query_equals_brute_force():

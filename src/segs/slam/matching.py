@@ -105,15 +105,24 @@ def match_descriptors(da: np.ndarray, db: np.ndarray, ratio: float = 0.75,
     """Brute-force kNN (cv2, Hamming) with ratio test and mutual uniqueness -> (ia [K], ib [K])."""
     if len(da) < 2 or len(db) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-    knn = bf.knnMatch(np.ascontiguousarray(da), np.ascontiguousarray(db), k=2)
-    arr = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance)
-                    for m in knn if len(m) == 2], np.float64).reshape(-1, 4)
-    ok = (arr[:, 2] <= max_dist) & (arr[:, 2] < ratio * arr[:, 3])
-    arr = arr[ok]
-    ia, ib, d = arr[:, 0].astype(np.int64), arr[:, 1].astype(np.int64), arr[:, 2]
+    dist, nidx = knn_hamming(da, db, 2)
+    ok = (nidx[:, 1] >= 0) & (dist[:, 0] <= max_dist) & (dist[:, 0] < ratio * dist[:, 1])
+    ia = np.flatnonzero(ok)
+    ib, d = nidx[ok, 0].astype(np.int64), dist[ok, 0]
     keep = unique_targets(ia, ib, d)
     return ia[keep], ib[keep]
+
+
+def knn_hamming(da: np.ndarray, db: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest descriptors of db for each of da (Hamming), as numpy arrays.
+
+    cv2.batchDistance is the kNN search inside cv2.BFMatcher.knnMatch (same neighbours, same
+    order, ties included) without one DMatch object per pair. -> (distances [A,k'] int32,
+    indices into db [A,k'] int32, -1 where there is no neighbour), k' = min(k, len(db)).
+    """
+    dist, nidx = cv2.batchDistance(np.ascontiguousarray(da), np.ascontiguousarray(db), cv2.CV_32S,
+                                   normType=cv2.NORM_HAMMING, K=k, update=0, crosscheck=False)
+    return dist, nidx
 
 
 def match_frame_to_kf(frame, kf, valid: np.ndarray, ratio: float = 0.75,
@@ -145,13 +154,12 @@ def match_for_triangulation(kf1, kf2, F12: np.ndarray, sigma2: np.ndarray, ratio
     if len(i1) == 0 or len(i2) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     # descriptors first (cv2 kNN on the free keypoints), then the epipolar test on the survivors
-    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
-    pairs = bf.knnMatch(kf1.kp.desc[i1], kf2.kp.desc[i2], k=knn)
-    rows = [(m.queryIdx, m.trainIdx, m.distance) for ms in pairs for m in ms]
-    if not rows:
+    dist, nidx = knn_hamming(kf1.kp.desc[i1], kf2.kp.desc[i2], knn)
+    found = nidx >= 0  # [N1,k] in query-major, nearest-first order
+    q = np.nonzero(found)[0].astype(np.int64)
+    t, d = nidx[found].astype(np.int64), dist[found].astype(np.float64)
+    if len(q) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    a = np.array(rows, np.float64)
-    q, t, d = a[:, 0].astype(np.int64), a[:, 1].astype(np.int64), a[:, 2]
     x1 = np.c_[kf1.kp.uv[i1[q]], np.ones(len(q))]
     x2 = np.c_[kf2.kp.uv[i2[t]], np.ones(len(q))]
     line = x1 @ F12.T  # epipolar lines in image 2
