@@ -162,13 +162,20 @@ def test_pose_jacobian_matches_finite_differences(stereo):
     assert np.allclose(num, J, rtol=1e-4, atol=1e-3)
 
 
+def _mono_ba_problem(rng, n_points: int, n_kfs: int, rot: float, step: float, px_noise: float):
+    """Points P [N,3], poses kf -> w2c (a sideways track), monocular observations of every point
+    from every keyframe with pixel noise."""
+    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (n_points, 3))
+    poses = {k: _pose([0, rot * k, 0], [-step * k, 0, 0]) for k in range(n_kfs)}
+    kf, pid = np.repeat(np.arange(n_kfs), n_points), np.tile(np.arange(n_points), n_kfs)
+    uv = np.concatenate([_project(T, P)[0] for T in poses.values()]) + rng.normal(0, px_noise, (len(kf), 2))
+    return P, poses, Observations(kf, pid, uv, np.full(len(kf), -1.0), np.zeros(len(kf), np.int64))
+
+
 def test_bundle_adjuster_reuses_factors_only_for_equal_observations():
     rng = np.random.default_rng(3)
-    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (50, 3))
-    poses = {k: _pose([0, 0.02 * k, 0], [-0.2 * k, 0, 0]) for k in range(3)}
-    kf, pid = np.repeat(np.arange(3), len(P)), np.tile(np.arange(len(P)), 3)
-    uv = np.concatenate([_project(T, P)[0] for T in poses.values()]) + rng.normal(0, 0.3, (len(kf), 2))
-    obs = Observations(kf, pid, uv, np.full(len(kf), -1.0), np.zeros(len(kf), np.int64))
+    P, poses, obs = _mono_ba_problem(rng, 50, 3, 0.02, 0.2, 0.3)
+    kf, pid, uv = obs.kf, obs.pid, obs.uv
     ba = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8))
     first = ba._factors(obs)
     moved = Observations(kf[::-1], pid[::-1], uv[::-1].copy(), obs.ur, obs.octave)  # same, reversed
@@ -185,11 +192,7 @@ def test_bundle_adjuster_reuses_factors_only_for_equal_observations():
 
 def test_bundle_adjuster_min_gain_stops_the_first_pass_early():
     rng = np.random.default_rng(5)
-    P = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (60, 3))
-    poses = {k: _pose([0, 0.03 * k, 0], [-0.25 * k, 0, 0]) for k in range(4)}
-    kf, pid = np.repeat(np.arange(4), len(P)), np.tile(np.arange(len(P)), 4)
-    uv = np.concatenate([_project(T, P)[0] for T in poses.values()]) + rng.normal(0, 0.5, (len(kf), 2))
-    obs = Observations(kf, pid, uv, np.full(len(kf), -1.0), np.zeros(len(kf), np.int64))
+    P, poses, obs = _mono_ba_problem(rng, 60, 4, 0.03, 0.25, 0.5)
     start = {k: T @ _pose(rng.normal(0, 0.01, 3), rng.normal(0, 0.02, 3)) if k else T for k, T in poses.items()}
     pts = {i: P[i] + rng.normal(0, 0.1, 3) for i in range(len(P))}
 
