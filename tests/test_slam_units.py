@@ -257,6 +257,9 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
         OrbFrontend(cam, "rgbd", tracking={"no_such_key": 1})
     with pytest.raises(ConfigError):
         OrbFrontend(cam, "fisheye")
+    for key, value in (("ba_iterations", (0, 1)), ("ba_iterations", (4, -1)), ("ba_min_gain", 1.5), ("ba_window", 0)):
+        with pytest.raises(ConfigError, match=f"slam.mapping.{key}"):
+            OrbFrontend(cam, "rgbd", mapping={key: value})
     conf = yaml.safe_load((ROOT / "conf/slam/orb.yaml").read_text())
     assert conf["_target_"] == "segs.slam.orb.OrbFrontend"
     for group, cls in C.GROUPS.items():

@@ -105,6 +105,19 @@ class MappingConfig:
     cull_window: int = 30  # only among its best covisible keyframes
     redundant_observers: int = 3  # "seen by others": at least this many at the same or a finer scale
 
+    def problems(self) -> list[tuple[str, str]]:
+        """(key, what is wrong) for values local BA cannot run with."""
+        out = []
+        its = tuple(self.ba_iterations)
+        if len(its) not in (1, 2) or not all(isinstance(i, int) and i >= 0 for i in its) or its[0] < 1:
+            out.append(("ba_iterations", f"[first, second] LM iterations, first >= 1, second >= 0; got {list(its)}"))
+        if not 0.0 <= self.ba_min_gain < 1.0:
+            out.append(("ba_min_gain", f"a fraction of the cost in [0, 1); got {self.ba_min_gain}"))
+        if self.ba_window < 1 or self.ba_fixed_max < 0:
+            out.append(("ba_window" if self.ba_window < 1 else "ba_fixed_max",
+                        f"ba_window >= 1 and ba_fixed_max >= 0; got {self.ba_window}, {self.ba_fixed_max}"))
+        return out
+
 
 @dataclass
 class LoopConfig:
@@ -152,4 +165,9 @@ def build(cls, values: Mapping[str, Any] | None, where: str):
         if hasattr(v, "__iter__") and not isinstance(v, (str, bytes)) and not hasattr(v, "items"):
             v = tuple(v)
         out[k] = v
-    return cls(**out)
+    cfg = cls(**out)
+    problems = cfg.problems() if hasattr(cfg, "problems") else []
+    if problems:
+        key, why = problems[0]
+        raise ConfigError(f"slam.{where}.{key}: {why}")
+    return cfg
