@@ -113,9 +113,10 @@ class MappingConfig:
             out.append(("ba_iterations", f"[first, second] LM iterations, first >= 1, second >= 0; got {list(its)}"))
         if not 0.0 <= self.ba_min_gain < 1.0:
             out.append(("ba_min_gain", f"a fraction of the cost in [0, 1); got {self.ba_min_gain}"))
-        if self.ba_window < 1 or self.ba_fixed_max < 0:
-            out.append(("ba_window" if self.ba_window < 1 else "ba_fixed_max",
-                        f"ba_window >= 1 and ba_fixed_max >= 0; got {self.ba_window}, {self.ba_fixed_max}"))
+        if self.ba_window < 1:
+            out.append(("ba_window", f"at least 1 keyframe; got {self.ba_window}"))
+        if self.ba_fixed_max < 0:
+            out.append(("ba_fixed_max", f"at least 0 keyframes; got {self.ba_fixed_max}"))
         return out
 
 
