@@ -205,6 +205,31 @@ def test_bundle_adjuster_min_gain_stops_the_first_pass_early():
     assert not np.array_equal(result((4, 1), 1e-5), result((1, 1), 1e-5))
 
 
+def test_bundle_adjuster_second_pass_drops_outliers_and_keeps_orphaned_points():
+    rng = np.random.default_rng(7)
+    P, poses, obs = _mono_ba_problem(rng, 40, 3, 0.03, 0.25, 0.3)
+    n = len(P)
+    obs.uv[[0, n, 2 * n]] += [[30.0, 0.0], [-30.0, 0.0], [0.0, 30.0]]  # point 0: wrong in every view
+    obs.uv[2 * n + 1] += [25.0, -25.0]  # point 1: wrong in keyframe 2 only
+    start = {k: T @ _pose(rng.normal(0, 0.005, 3), rng.normal(0, 0.01, 3)) if k else T for k, T in poses.items()}
+    pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(n)}
+    ba = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8))
+    first_poses, first_pts, first_bad = ba.run_two_pass(start, {0}, pts, obs, (5, 0))
+    two_poses, two_pts, bad = ba.run_two_pass(start, {0}, pts, obs, (5, 5))
+    assert set(np.flatnonzero(first_bad).tolist()) >= {0, n, 2 * n, 2 * n + 1}
+    assert bad.sum() <= 6 and np.array_equal(bad[[0, n, 2 * n, 2 * n + 1]], [True] * 4)
+    assert np.array_equal(two_pts[0], first_pts[0])  # no observation left: the first pass's position
+    # the second pass is the first pass's optimum re-optimised without its outliers
+    keep = ~first_bad
+    sub = Observations(obs.kf[keep], obs.pid[keep], obs.uv[keep], obs.ur[keep], obs.octave[keep])
+    ref_poses, ref_pts = ba.run(first_poses, {0}, {i: first_pts[i] for i in np.unique(sub.pid).tolist()}, sub, 5)
+    assert all(np.allclose(two_poses[k], ref_poses[k], atol=1e-9) for k in poses)
+    assert all(np.allclose(two_pts[i], ref_pts[i], atol=1e-9) for i in ref_pts)
+    chi = [ba.chi2(q, np.array([x[i] for i in sub.pid.tolist()]), sub)[1].sum() for q, x in
+           ((first_poses, first_pts), (two_poses, two_pts))]
+    assert chi[1] < chi[0]  # without the outliers' pull the inliers fit better
+
+
 def test_pose_graph_spreads_loop_error_and_sim3_conversion():
     chain = {k: _pose([0, 0, 0], [-float(k), 0, 0]) for k in range(5)}
     init = dict(chain)

@@ -26,11 +26,13 @@ def reproj_chi2(w2c: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray |
                 ur_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per observation chi2 [M], its threshold [M] (2 or 3 dof) and the camera depth [M].
 
+    w2c: one pose [4,4] for all points P [M,3], or one per point [M,4,4].
+
     The third (stereo / RGB-D) residual is the disparity error bf/z - (u_meas - ur_meas), whose
     pixel sigma is ur_sigma (RGB-D: from the depth noise) or, when None, the keypoint's octave
     sigma (stereo). Equivalent to ORB-SLAM's (u, v, ur) residual with correlated u / ur noise.
     """
-    pc = transform(w2c, P)
+    pc = transform(w2c, P) if w2c.ndim == 2 else np.matmul(w2c[:, :3, :3], P[:, :, None])[:, :, 0] + w2c[:, :3, 3]
     z = pc[:, 2]
     zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
     u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
@@ -196,16 +198,6 @@ def _pose3(w2c: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(inv_se3(w2c))
 
 
-def _schur_ordering(poses, points) -> gtsam.Ordering:
-    """Elimination order: every point, then every pose."""
-    order = gtsam.Ordering()
-    for p in points:
-        order.push_back(_L0 + int(p))
-    for k in poses:
-        order.push_back(_X0 + int(k))
-    return order
-
-
 CONVERGED_GAIN = 1e-5  # LM stops after an iteration that lowers the cost by less than this fraction
 
 
@@ -290,22 +282,41 @@ class BundleAdjuster:
             graph.add(f)
         return graph, values
 
-    def _optimize(self, poses, fixed, points, factors, iterations, min_gain=CONVERGED_GAIN):
-        graph, values = self.graph(poses, fixed, points, factors)
+    @staticmethod
+    def _lm(graph, values, order: gtsam.Ordering, iterations: int, min_gain: float = CONVERGED_GAIN):
+        """gtsam LM from values -> optimised Values, or None for an indeterminate system."""
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(iterations))
         params.setRelativeErrorTol(float(min_gain))
         # points first, poses last: the elimination is the Schur complement of BA (a dense
         # reduced camera system); sequential Cholesky is 10-15 % faster than the multifrontal
         # default here, with the same steps (bench/local_ba.py)
-        params.setOrdering(_schur_ordering(poses, points))
+        params.setOrdering(order)
         params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
         try:
-            result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        except RuntimeError:  # indeterminate system (degenerate window): keep the input
+            return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        except RuntimeError:  # indeterminate system (degenerate window)
+            return None
+
+    @staticmethod
+    def _order(poses, pids: np.ndarray) -> gtsam.Ordering:
+        """Elimination order: the points pids [N], then every pose."""
+        return gtsam.Ordering((np.uint64(_L0) + pids.astype(np.uint64)).tolist() + [_X0 + int(k) for k in poses])
+
+    @staticmethod
+    def _read(values, poses) -> tuple[dict[int, np.ndarray], np.ndarray]:
+        """-> (kf_id -> w2c [4,4] for every key of poses, every point of values [N,3] in id order)."""
+        return ({k: inv_se3(values.atPose3(_X0 + int(k)).matrix()) for k in poses},
+                gtsam.utilities.extractPoint3(values).reshape(-1, 3))
+
+    def _optimize(self, poses, fixed, points, factors, iterations, min_gain=CONVERGED_GAIN):
+        graph, values = self.graph(poses, fixed, points, factors)
+        pids = np.sort(np.fromiter(points, np.int64, len(points)))
+        result = self._lm(graph, values, self._order(poses, pids), iterations, min_gain)
+        if result is None:  # keep the input
             return dict(poses), dict(points)
-        return ({k: inv_se3(result.atPose3(_X0 + int(k)).matrix()) for k in poses},
-                {p: result.atPoint3(_L0 + int(p)) for p in points})
+        new_poses, P = self._read(result, poses)
+        return new_poses, dict(zip(pids.tolist(), P))
 
     def run(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
             obs: Observations, iterations: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
@@ -315,38 +326,43 @@ class BundleAdjuster:
     def run_two_pass(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
                      obs: Observations, iterations: tuple[int, int], min_gain: float = CONVERGED_GAIN):
         """ORB-SLAM's local BA: optimise, drop the observations that fail the chi2 test, optimise
-        again without them (reusing the factors). -> (poses, points, outlier mask [O] after the
-        last pass). The first pass stops early after an iteration that lowered the cost by less
-        than the fraction min_gain."""
+        again without them. -> (poses, points, outlier mask [O] after the last pass). Each pass
+        stops early after an iteration that lowered the cost by less than the fraction min_gain.
+        The second pass starts from the first's gtsam Values and graph, minus the outliers'
+        factors and the points left without observations (those keep the first pass's position)."""
         it1, it2 = (tuple(iterations) + (0,))[:2]
         factors = self._factors(obs)
-        new_poses, new_points = self._optimize(poses, fixed, points, factors, it1, min_gain)
-        bad = self._bad(new_poses, new_points, obs)
+        graph, values = self.graph(poses, fixed, points, factors)
+        pids = np.sort(np.fromiter(points, np.int64, len(points)))  # extractPoint3's order
+        at = np.searchsorted(pids, obs.pid)  # observation -> row of pids
+        result = self._lm(graph, values, self._order(poses, pids), it1, min_gain)
+        result = values if result is None else result
+        new_poses, P = self._read(result, poses)
+        bad = self.chi2(new_poses, P[at], obs)[0]
         if it2 > 0 and bad.any():
-            keep = np.flatnonzero(~bad)
-            sub_points = {p: new_points[p] for p in np.unique(obs.pid[keep]).tolist()}
-            new_poses, pts2 = self._optimize(new_poses, fixed, sub_points, [factors[i] for i in keep.tolist()], it2)
-            new_points.update(pts2)
-            bad = self._bad(new_poses, new_points, obs)
-        return new_poses, new_points, bad
-
-    def _bad(self, poses, points, obs: Observations) -> np.ndarray:
-        P = np.array([points[p] for p in obs.pid.tolist()]).reshape(-1, 3)
-        return self.chi2(poses, P, obs)[0]
+            first = graph.size() - len(factors)  # graph(): the priors, then the factors in order
+            for i in np.flatnonzero(bad).tolist():
+                graph.remove(first + i)
+            kept = np.zeros(len(pids), bool)
+            kept[at[~bad]] = True
+            for p in pids[~kept].tolist():
+                result.erase(_L0 + p)
+            second = self._lm(graph, result, self._order(poses, pids[kept]), it2, min_gain)
+            if second is not None:
+                new_poses, P[kept] = self._read(second, poses)
+                bad = self.chi2(new_poses, P[at], obs)[0]
+        return new_poses, dict(zip(pids.tolist(), P)), bad
 
     def chi2(self, poses: dict[int, np.ndarray], points: np.ndarray, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
         """Outlier test per observation: (chi2 > threshold or behind the camera) [O] bool, chi2 [O].
 
         points: [O,3] position of each observation's point.
         """
-        bad = np.zeros(len(obs.kf), bool)
-        chi = np.zeros(len(obs.kf))
-        for k in np.unique(obs.kf):
-            m = obs.kf == k
-            c, th, z = reproj_chi2(poses[int(k)], points[m], obs.uv[m], obs.ur[m],
-                                   self.inv_sigma2[obs.octave[m]], self.K, self.bf, self.ur_sigma)
-            chi[m] = c
-            bad[m] = (c > th) | (z <= 0)
+        ks = np.sort(np.fromiter(poses, np.int64, len(poses)))
+        w2c = np.stack([poses[k] for k in ks.tolist()])[np.searchsorted(ks, obs.kf)]  # [O,4,4]
+        chi, th, z = reproj_chi2(w2c, points, obs.uv, obs.ur, self.inv_sigma2[obs.octave], self.K, self.bf,
+                                 self.ur_sigma)
+        bad = (chi > th) | (z <= 0)
         return bad, chi
 
 
