@@ -11,6 +11,8 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
+from itertools import chain
+
 import numpy as np
 
 from segs.slam.features import Keypoints
@@ -261,31 +263,38 @@ class Map:
         The observations' descriptors are gathered per keyframe, then the distances are computed
         per group of points with the same number of observations (vectorized).
         """
-        pts, counts, kf_of, kp_of = [], [], [], []
-        for pid in np.asarray(pids, np.int64).tolist():
-            ds = [(k, i) for k, i in self.obs[pid].items() if k in self.kfs]
-            if len(ds) < 2:
-                continue
-            pts.append(pid)
-            counts.append(len(ds))
-            for k, i in ds:
-                kf_of.append(k)
-                kp_of.append(i)
-        if not pts:
+        pids = np.asarray(pids, np.int64)
+        obs = self.obs
+        counts = np.array([len(obs[p]) for p in pids.tolist()], np.int64)
+        owner = np.repeat(np.flatnonzero(counts >= 2), counts[counts >= 2])  # [O] row of pids
+        if not len(owner):
             return
-        kf_of, kp_of = np.asarray(kf_of, np.int64), np.asarray(kp_of, np.int64)
+        flat = chain.from_iterable(chain.from_iterable(obs[p].items() for p in pids[counts >= 2].tolist()))
+        kf_of, kp_of = np.fromiter(flat, np.int64, 2 * len(owner)).reshape(-1, 2).T  # (kf, keypoint), point-major
+        alive = np.isin(kf_of, np.fromiter(self.kfs, np.int64, len(self.kfs)))
+        if not alive.all():  # observations of removed keyframes do not vote
+            owner, kf_of, kp_of = owner[alive], kf_of[alive], kp_of[alive]
+        rows, counts = np.unique(owner, return_counts=True)
+        if not (counts >= 2).all():
+            two = np.isin(owner, rows[counts >= 2])
+            owner, kf_of, kp_of = owner[two], kf_of[two], kp_of[two]
+            rows, counts = rows[counts >= 2], counts[counts >= 2]
+        if not len(rows):
+            return
+        pts = pids[rows]
         desc = np.empty((len(kf_of), 32), np.uint8)  # [O,32] observation descriptors, point-major
-        for k in np.unique(kf_of).tolist():
-            sel = kf_of == k
+        by_kf = np.argsort(kf_of, kind="stable")
+        ks, first = np.unique(kf_of[by_kf], return_index=True)
+        for k, sel in zip(ks.tolist(), np.split(by_kf, first[1:])):
             desc[sel] = self.kfs[k].kp.desc[kp_of[sel]]
-        pts, counts = np.asarray(pts, np.int64), np.asarray(counts, np.int64)
         starts = np.cumsum(counts) - counts
         for n in np.unique(counts).tolist():
             g = counts == n
             d = desc[starts[g][:, None] + np.arange(n)]  # [P,n,32]
             d64 = d.view(np.uint64)  # [P,n,4]
-            dm = np.bitwise_count(d64[:, :, None, :] ^ d64[:, None, :, :]).sum(-1)  # [P,n,n]
-            best = np.argmin(np.median(dm, axis=2), axis=1)
+            dm = np.sort(np.bitwise_count(d64[:, :, None, :] ^ d64[:, None, :, :]).sum(-1), axis=2)  # [P,n,n]
+            median = dm[:, :, (n - 1) // 2] + dm[:, :, n // 2]  # 2x the median (np.median's mean of the middle two)
+            best = np.argmin(median, axis=1)
             self.desc[pts[g]] = d[np.arange(int(g.sum())), best]
 
     def predict_level(self, pids: np.ndarray, dist: np.ndarray) -> np.ndarray:
