@@ -10,12 +10,15 @@ problem (poses, fixed keyframes, points, observations). Then, on the last --prob
   (with the elimination order BundleAdjuster uses and with gtsam's default COLAMD order), one
   error evaluation;
 - whole optimisations: solver / order variants and iteration budgets, with the final cost
-  (sum of robust squared whitened errors) relative to the 5+10 reference;
+  (sum of robust squared whitened errors) relative to LM 5 iterations;
 - BundleAdjuster.run_two_pass as the frontend calls it, each call after the previous problem's
   (the figure in fe.mapper.ba_times, minus reading / writing the map), with the configured and
-  other iteration budgets / early stops (min_gain).
+  other iteration budgets / early stops (min_gain), with LM's initial damping as configured
+  (optimize.LAMBDA_INITIAL) and gtsam's default 1e-5, and the final cost (every observation,
+  robust) relative to the configured call's.
 
-Medians over problems, each timed --repeat times (the median of those). JSON: outputs/bench/local_ba.json.
+Medians (and means: a rejected LM step costs a whole elimination, so slow windows matter) over
+problems, each timed --repeat times (the median of those). JSON: outputs/bench/local_ba.json.
 
     python bench/local_ba.py --frames 300 --problems 12
 """
@@ -72,6 +75,8 @@ def graph_of(ba: BundleAdjuster, poses, fixed, points, obs):
 def optimise(graph, values, order, iterations: int, solver: str, method: str = "LM"):
     """-> (seconds, final error, iterations run)."""
     params = gtsam.LevenbergMarquardtParams() if method == "LM" else gtsam.GaussNewtonParams()
+    if method == "LM":
+        params.setlambdaInitial(optimize.LAMBDA_INITIAL)
     params.setMaxIterations(iterations)
     params.setRelativeErrorTol(1e-5)
     params.setLinearSolverType(solver)
@@ -82,6 +87,16 @@ def optimise(graph, values, order, iterations: int, solver: str, method: str = "
     opt = cls(graph, values, params)
     result = opt.optimize()
     return time.perf_counter() - t, graph.error(result), opt.iterations()
+
+
+def cost_at(graph, poses, new_poses, new_points) -> float:
+    """The graph's error (every observation, robust) at a run_two_pass result."""
+    values = gtsam.Values()
+    for k in poses:
+        values.insert(optimize._X0 + int(k), optimize._pose3(new_poses[k]))
+    for p, x in new_points.items():
+        values.insert(optimize._L0 + int(p), np.asarray(x, np.float64))
+    return graph.error(values)
 
 
 def timed(fn, repeat: int, setup=None) -> float:
@@ -112,13 +127,15 @@ def main() -> None:
     def add(name, value):
         rows.setdefault(name, []).append(value)
 
-    tol = optimize.CONVERGED_GAIN
-    variants = [("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", ((5, 10), tol)),
-                ("BundleAdjuster.run_two_pass, the configured iterations, min_gain", "config"),
-                ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 4), tol)),
-                ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 1), tol)),
-                ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol)),
-                ("BundleAdjuster.run_two_pass, LM, min_gain", ((1, 1), tol))] + [
+    tol, lam, gtsam_lam = optimize.CONVERGED_GAIN, optimize.LAMBDA_INITIAL, 1e-5
+    variants = [("BundleAdjuster.run_two_pass, the configured iterations, min_gain", "config"),
+                ("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", ((5, 10), tol, gtsam_lam)),
+                ("BundleAdjuster.run_two_pass, the configured iterations, min_gain", "config_gtsam_lambda"),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 4), tol, lam)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol, lam)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol, gtsam_lam)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((1, 1), tol, lam)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((1, 1), tol, gtsam_lam))] + [
         (f"{m} {it} it, {solver.split('_')[0].lower()} Cholesky, {'points-first' if schur else 'COLAMD'}", (m, it, solver, schur))
         for m, it, solver, schur in [("LM", 5, "MULTIFRONTAL_CHOLESKY", False), ("LM", 5, "SEQUENTIAL_CHOLESKY", True),
                                      ("LM", 10, "SEQUENTIAL_CHOLESKY", True), ("LM", 3, "SEQUENTIAL_CHOLESKY", True),
@@ -146,10 +163,18 @@ def main() -> None:
         add("one elimination, points first, sequential (ms)", 1e3 * timed(lambda: lin.eliminateSequential(order), args.repeat))
         ref_error = None
         for name, v in variants:
-            if not isinstance(v, tuple) or len(v) == 2:
-                its, gain = iterations if v == "config" else v
-                add(f"{name} {its} {gain:g} (ms)", 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its, gain),
-                                                               args.repeat, after_previous))
+            if isinstance(v, str) or len(v) == 3:
+                its, gain, v_lam = (*iterations, lam if v == "config" else gtsam_lam) if isinstance(v, str) else v
+                optimize.LAMBDA_INITIAL = v_lam
+                ms = 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its, gain), args.repeat, after_previous)
+                new_poses, new_points, _ = ba.run_two_pass(poses, fixed, points, obs, its, gain)
+                optimize.LAMBDA_INITIAL = lam
+                label = f"{name} {its} {gain:g}, initial lambda {v_lam:g}"
+                add(label + " (ms)", ms)
+                if v == "config":
+                    ref_cost = cost_at(graph, poses, new_poses, new_points)
+                else:
+                    add(label + ": final cost / configured's", cost_at(graph, poses, new_poses, new_points) / ref_cost)
                 continue
             m, it, solver, schur = v
             secs, err, its = zip(*[optimise(graph, values, order if schur else None, it, solver, m) for _ in range(args.repeat)])
@@ -160,16 +185,17 @@ def main() -> None:
             add(name + ": iterations", its[0])
         previous = obs
     table = {k: statistics.median(v) for k, v in rows.items()}
+    means = {k: statistics.fmean(v) for k, v in rows.items()}
     print(f"local BA on {len(problems)} problems of 7-Scenes {args.sensor} frames 0-{args.frames} "
-          f"(load {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}); medians:")
+          f"(load {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}); median, mean over problems:")
     for k, v in table.items():
-        print(f"  {k:72s} {v:12.5f}")
+        print(f"  {k:90s} {v:12.5f} {means[k]:12.5f}")
     print(f"  {'local BA in the tracking run (fe.mapper.ba_times, median, ms)':72s} {info['local_ba_ms_in_run']:12.1f}")
     out = ROOT / "outputs" / "bench"
     out.mkdir(parents=True, exist_ok=True)
     (out / "local_ba.json").write_text(json.dumps({
         "args": vars(args), "machine": platform.platform(), "cpus": os.cpu_count(), "load": [load0, os.getloadavg()],
-        "info": info, "medians": table}, indent=2))  # fmt: skip
+        "info": info, "medians": table, "means": means}, indent=2))  # fmt: skip
 
 
 if __name__ == "__main__":
