@@ -11,7 +11,7 @@ tracked, and their mean / standard deviation / range. Compare settings by these,
     python bench/ate_spread.py --offsets 6
     python bench/ate_spread.py --offsets 6 --override slam.mapping.ba_iterations=[1,1]
 
-JSON: outputs/bench/ate_spread/<time>.json.
+JSON: outputs/bench/ate_spread/<time>.json (with the source folder and commit of the segs that ran).
 """
 from __future__ import annotations
 
@@ -21,11 +21,26 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+
+
+def code_version() -> dict:
+    """Which segs the runs import: its source folder, that checkout's commit and whether the
+    folder had uncommitted changes (commit None outside a git checkout)."""
+    import segs
+
+    src = Path(segs.__file__).resolve().parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(src), *args], capture_output=True, text=True).stdout.strip()
+
+    return {"source": str(src), "commit": git("rev-parse", "HEAD") or None,
+            "modified": bool(git("status", "--porcelain", "--", "."))}  # fmt: skip
 
 
 def track(sensor: str, root: str, first: int, overrides: list[str]) -> dict:
@@ -81,7 +96,7 @@ def main() -> None:
     out = ROOT / "outputs" / "bench" / "ate_spread"
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{datetime.datetime.now():%Y%m%d-%H%M%S}.json"
-    path.write_text(json.dumps({"args": vars(a), "machine": platform.platform(), "cpus": os.cpu_count(),
+    path.write_text(json.dumps({"args": vars(a), "code": code_version(), "machine": platform.platform(), "cpus": os.cpu_count(),
                                 "runs": rows, "summary": summary}, indent=2))  # fmt: skip
     print(f"-> {path}")
 
