@@ -202,11 +202,11 @@ CONVERGED_GAIN = 1e-5  # LM stops after an iteration that lowers the cost by les
 # LM's initial damping lambda (absolute: added to the diagonal of the whitened normal equations).
 # gtsam's default 1e-5 makes the first step an undamped Gauss-Newton step; in 5 of 30 real
 # 7-Scenes RGB-D windows that step raised the cost by 30-140 %, nearly all of it from one to three
-# points without depth or parallax (observations without a depth reading) thrown 3-63 m along
-# their rays, and each rejected step costs a whole elimination until lambda has grown enough.
-# 100 is small against a point's diagonal (about 3e5: a few observations at 525 px and 2 m) yet
-# holds such points: same final cost, less time (bench/local_ba.py, docs/performance.md
-# "Local BA, fourth round").
+# points with few or no depth readings among their observations, thrown 3-63 m along their rays,
+# and each rejected step costs a whole elimination until lambda has grown enough. 100 is small
+# against a point's diagonal (about 3e5: a few observations at 525 px and 2 m) yet holds such
+# points: same final cost, less time (bench/local_ba.py, docs/performance.md "Local BA, fourth
+# round").
 LAMBDA_INITIAL = 100.0
 
 
