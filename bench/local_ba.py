@@ -128,9 +128,11 @@ def main() -> None:
         rows.setdefault(name, []).append(value)
 
     tol, lam, gtsam_lam = optimize.CONVERGED_GAIN, optimize.LAMBDA_INITIAL, 1e-5
-    variants = [("BundleAdjuster.run_two_pass, the configured iterations, min_gain", "config"),
+    # run_two_pass variants: (iterations, min_gain, initial lambda), None = as configured; the
+    # first one is the reference of the final costs
+    variants = [("BundleAdjuster.run_two_pass, the configured iterations, min_gain", (None, None, lam)),
                 ("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", ((5, 10), tol, gtsam_lam)),
-                ("BundleAdjuster.run_two_pass, the configured iterations, min_gain", "config_gtsam_lambda"),
+                ("BundleAdjuster.run_two_pass, the configured iterations, min_gain", (None, None, gtsam_lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 4), tol, lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol, lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol, gtsam_lam)),
@@ -161,20 +163,21 @@ def main() -> None:
         lin = graph.linearize(values)
         add("one elimination, COLAMD multifrontal (ms)", 1e3 * timed(lambda: lin.eliminateMultifrontal(), args.repeat))
         add("one elimination, points first, sequential (ms)", 1e3 * timed(lambda: lin.eliminateSequential(order), args.repeat))
-        ref_error = None
+        ref_error = ref_cost = None
         for name, v in variants:
-            if isinstance(v, str) or len(v) == 3:
-                its, gain, v_lam = (*iterations, lam if v == "config" else gtsam_lam) if isinstance(v, str) else v
-                optimize.LAMBDA_INITIAL = v_lam
+            if len(v) == 3:
+                its, gain = iterations if v[0] is None else v[:2]
+                optimize.LAMBDA_INITIAL = v[2]
                 ms = 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its, gain), args.repeat, after_previous)
                 new_poses, new_points, _ = ba.run_two_pass(poses, fixed, points, obs, its, gain)
                 optimize.LAMBDA_INITIAL = lam
-                label = f"{name} {its} {gain:g}, initial lambda {v_lam:g}"
+                label = f"{name} {its} {gain:g}, initial lambda {v[2]:g}"
                 add(label + " (ms)", ms)
-                if v == "config":
-                    ref_cost = cost_at(graph, poses, new_poses, new_points)
+                cost = cost_at(graph, poses, new_poses, new_points)
+                if ref_cost is None:
+                    ref_cost = cost
                 else:
-                    add(label + ": final cost / configured's", cost_at(graph, poses, new_poses, new_points) / ref_cost)
+                    add(label + ": final cost / configured's", cost / ref_cost)
                 continue
             m, it, solver, schur = v
             secs, err, its = zip(*[optimise(graph, values, order if schur else None, it, solver, m) for _ in range(args.repeat)])
