@@ -1,0 +1,68 @@
+"""bench/ate_diagnostics.py: the lever-arm and time-offset tests recover what was put in (synthetic
+trajectories in a 7-Scenes-style folder; the real frames are not needed)."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("ate_diagnostics_bench", ROOT / "bench" / "ate_diagnostics.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _depth_track(n: int, rng: np.random.Generator) -> np.ndarray:
+    """[n,4,4] camera-to-world poses of a camera that pans and tilts by tens of degrees while it moves."""
+    t = np.linspace(0, 1, n)
+    rot = Rotation.from_euler("xyz", np.stack([0.5 * np.sin(3 * t), 0.8 * np.sin(2 * t + 1), 0.2 * t], 1)).as_matrix()
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = rot
+    T[:, :3, 3] = np.stack([np.sin(t), 0.3 * t, np.cos(2 * t)], 1) + 0.001 * rng.standard_normal((n, 3))
+    return T
+
+
+def _write(folder: Path, T_depth: np.ndarray, est: np.ndarray) -> Path:
+    """A 7-Scenes folder (poses + empty colour files) and a TUM trajectory of centres est [N,3]."""
+    folder.mkdir()
+    for i, T in enumerate(T_depth):
+        np.savetxt(folder / f"frame-{i:06d}.pose.txt", T)
+        (folder / f"frame-{i:06d}.color.png").write_bytes(b"")
+    lines = np.column_stack([np.arange(len(est)) / 30.0, est, np.zeros((len(est), 3)), np.ones(len(est))])
+    path = folder.parent / "trajectory.txt"
+    np.savetxt(path, lines)
+    return path
+
+
+def test_lever_arm_and_alignment_recovered(tmp_path):
+    bench = _bench()
+    rng = np.random.default_rng(0)
+    T = _depth_track(120, rng)
+    lever = np.array([0.05, -0.02, 0.01])
+    A = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    est = (bench.colour_centres(T, lever) - 0.5) @ A  # the colour centres in another world frame
+    res = bench.diagnose(_write(tmp_path / "seq", T, est), tmp_path / "seq", [0.0])
+    assert res["ate_cm_fitted_lever"] < 0.01
+    assert np.allclose(res["fitted_lever_cm"], 100 * lever, atol=0.05)
+    assert res["ate_cm_no_lever"] > 0.5  # a 5 cm lever arm under tens of degrees of rotation shows
+
+
+def test_time_offset_found(tmp_path):
+    bench = _bench()
+    T = _depth_track(200, np.random.default_rng(1))
+    rx, ry, rz, *t = bench.DEPTH_TO_COLOR
+    lever = -Rotation.from_rotvec([rx, ry, rz]).as_matrix().T @ np.asarray(t)
+    C = bench.colour_centres(T, lever)
+    est = 0.5 * (C[1:] + C[:-1])  # frame i estimated where the ground truth is at i + 0.5
+    res = bench.diagnose(_write(tmp_path / "seq", T, est), tmp_path / "seq", [-0.5, 0.0, 0.5])
+    by = {o["frames"]: o["ate_cm"] for o in res["time_offsets"]}
+    assert by[0.5] == pytest.approx(0.0, abs=1e-6)
+    assert by[0.0] > by[0.5] and by[-0.5] > by[0.0]
+    assert res["ate_cm_reader"] == pytest.approx(by[0.0])
