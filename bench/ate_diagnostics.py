@@ -27,7 +27,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from segs.data.seven_scenes import DEPTH_TO_COLOR, find_sequence, read_pose
+from segs.data.base import DepthRegistration
+from segs.data.seven_scenes import DEPTH_INTRINSICS, DEPTH_TO_COLOR, find_sequence, read_pose
 from segs.slam.geometry import umeyama
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,6 +46,11 @@ def colour_centres(T_depth: np.ndarray, lever: np.ndarray) -> np.ndarray:
     """Colour-camera centres [N,3] from depth-camera camera-to-world poses [N,4,4] and the colour
     centre in the depth camera's frame lever [3]."""
     return T_depth[:, :3, 3] + T_depth[:, :3, :3] @ lever
+
+
+def reader_lever() -> np.ndarray:
+    """The colour centre [3] (m) in the depth camera's frame, as the reader converts the ground truth."""
+    return np.linalg.inv(DepthRegistration(DEPTH_INTRINSICS, DEPTH_TO_COLOR).T)[:3, 3]
 
 
 def fitted_lever(est: np.ndarray, T_depth: np.ndarray, start: np.ndarray) -> tuple[float, np.ndarray]:
@@ -67,9 +73,7 @@ def diagnose(trajectory: Path, root: Path, offsets: list[float]) -> dict:
     n = int(idx.max()) + 1
     T_all = np.stack([read_pose(seq / f"frame-{i:06d}.pose.txt") for i in range(n)])
     P, T = est[:, 1:4], T_all[idx]
-    rx, ry, rz, *t = DEPTH_TO_COLOR
-    R_dc = Rotation.from_rotvec([rx, ry, rz]).as_matrix()
-    lever = -R_dc.T @ np.asarray(t)  # the colour centre in the depth camera's frame
+    lever = reader_lever()
     fit, fitted = fitted_lever(P, T, lever)
     out = {"trajectory": str(trajectory), "frames": len(idx), "reader_lever_cm": (100 * lever).round(2).tolist(),
            "ate_cm_reader": 100 * rmse(P, colour_centres(T, lever)), "ate_cm_no_lever": 100 * rmse(P, T[:, :3, 3]),

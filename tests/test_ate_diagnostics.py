@@ -57,9 +57,7 @@ def test_lever_arm_and_alignment_recovered(tmp_path):
 def test_time_offset_found(tmp_path):
     bench = _bench()
     T = _depth_track(200, np.random.default_rng(1))
-    rx, ry, rz, *t = bench.DEPTH_TO_COLOR
-    lever = -Rotation.from_rotvec([rx, ry, rz]).as_matrix().T @ np.asarray(t)
-    C = bench.colour_centres(T, lever)
+    C = bench.colour_centres(T, bench.reader_lever())
     est = 0.5 * (C[1:] + C[:-1])  # frame i estimated where the ground truth is at i + 0.5
     res = bench.diagnose(_write(tmp_path / "seq", T, est), tmp_path / "seq", [-0.5, 0.0, 0.5])
     by = {o["frames"]: o["ate_cm"] for o in res["time_offsets"]}
