@@ -95,6 +95,40 @@ def test_live_mode_drops_the_frames_it_is_too_slow_for(tmp_path):
     assert fe.stats()["frames_dropped"] == len(dropped)
 
 
+def test_prepared_frames_track_like_raw_ones_and_keep_their_feature_time(tmp_path):
+    """OrbFrontend.prepare (features built ahead, as the frame source's thread does) changes
+    nothing tracked, and "track" still counts the features' time."""
+    _, seq, factory = _setup(tmp_path)
+    raw, ahead = factory(), factory()
+    for i in range(len(seq)):
+        a, b = raw.process(seq[i]), ahead.process(ahead.prepare(seq[i]))
+        assert a.kf_id == b.kf_id and (a.w2c is None) == (b.w2c is None)
+        assert a.w2c is None or np.array_equal(a.w2c, b.w2c)
+    assert raw.keyframe_frames() == ahead.keyframe_frames()
+    feats, track = np.array(ahead.times["features"]), np.array(ahead.times["track"])
+    assert (feats > 0).all() and (track >= feats).all()
+
+
+def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):
+    import threading
+
+    from segs.slam.process import _FrameSource
+
+    _, seq, _ = _setup(tmp_path)
+    threads = []
+
+    def prepare(frame):
+        threads.append(threading.get_ident())
+        return ("prepared", frame.index)
+
+    source = _FrameSource(seq, 3, live=False, rate=1.0, prepare=prepare)
+    got = []
+    while (item := source.next()[0]) is not None:
+        got.append(item)
+    assert got == [("prepared", i) for i in range(3, len(seq))]
+    assert len(threads) == len(seq) - 3 and threading.get_ident() not in threads
+
+
 def test_live_pacing_waits_for_a_frame_and_skips_past_ones():
     ts = np.arange(10) / 30.0
     import time

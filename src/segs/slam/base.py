@@ -72,7 +72,14 @@ class Frontend(abc.ABC):
 
     @abc.abstractmethod
     def process(self, frame: Frame) -> FrameResult:
-        """Track one frame (in single-thread mode this also runs local mapping)."""
+        """Track one frame, raw or as prepare() returned it (in single-thread mode this also runs
+        local mapping)."""
+
+    def prepare(self, frame: Frame) -> Frame:
+        """Per-frame work that needs nothing of the map (feature extraction), so that a frame
+        source can run it ahead in another thread while the previous frame is tracked;
+        process() accepts what this returns as well as the raw frame. Default: the frame."""
+        return frame
 
     @abc.abstractmethod
     def poll(self) -> MapUpdate:

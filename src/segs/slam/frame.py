@@ -75,6 +75,7 @@ class SlamFrame:
     outlier: np.ndarray = field(default=None)  # type: ignore[assignment]
     w2c: np.ndarray | None = None
     ref_kf: int | None = None
+    build_seconds: tuple[float, float] = (0.0, 0.0)  # FrameBuilder.build's (wall, thread CPU) seconds
 
     def __post_init__(self) -> None:
         n = len(self.kp)

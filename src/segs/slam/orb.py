@@ -33,7 +33,7 @@ from segs.slam import config as C
 from segs.slam.ba_process import BundleAdjusterProcess
 from segs.slam.base import FrameResult, Frontend, MapUpdate
 from segs.slam.features import OrbExtractor
-from segs.slam.frame import FrameBuilder
+from segs.slam.frame import FrameBuilder, SlamFrame
 from segs.slam.frame_poses import FramePoses
 from segs.slam.keyframe_queue import KeyFrameQueue
 from segs.slam.local_mapping import LocalMapper
@@ -111,13 +111,27 @@ class OrbFrontend(Frontend):
                                self.seed, self._log)
 
     # ------------------------------------------------------------------ Frontend API
-    def process(self, frame: Frame) -> FrameResult:
+    def prepare(self, frame: Frame) -> SlamFrame:
+        """The frame's features (ORB, depth / stereo) as a SlamFrame, built ahead by a frame
+        source in its own thread; the build's wall and thread CPU seconds are kept on it."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        sf = self.builder.build(frame)
+        sf.build_seconds = (time.perf_counter() - t0, time.thread_time() - c0)
+        return sf
+
+    def process(self, frame: Frame | SlamFrame) -> FrameResult:
+        """Track a frame; its features are built here unless prepare() built them ahead ("track"
+        counts their time either way, so it stays the per-frame cost)."""
         self.keyframes.raise_error()
         t0, c0 = time.perf_counter(), time.process_time()
-        sf = self.builder.build(frame)
-        t1 = time.perf_counter()
+        if isinstance(frame, SlamFrame):
+            sf, (build_s, build_cpu) = frame, frame.build_seconds
+            t0, c0 = t0 - build_s, c0 - build_cpu
+        else:
+            sf = self.builder.build(frame)
+            build_s = time.perf_counter() - t0
         kf = self.tracker.track(sf)
-        self.times["features"].append(t1 - t0)
+        self.times["features"].append(build_s)
         self.times["track"].append(time.perf_counter() - t0)
         self.times["track_cpu"].append(time.process_time() - c0)
         if sf.w2c is None:

@@ -261,8 +261,9 @@ def _next_live(timestamps: np.ndarray, i: int, t0: float, ts0: float, rate: floa
 
 
 class _FrameSource:
-    """The child's frames, read (decoded, depth registered) in a background thread so that
-    reading overlaps tracking (OpenCV's decoders release the GIL).
+    """The child's frames, read (decoded, depth registered) and prepared (the frontend's
+    `prepare`: feature extraction) in a background thread, so that both overlap the tracking of
+    the previous frame (OpenCV's decoders and ORB release the GIL).
 
     process: every frame in order, up to `ahead` read in advance. live: a camera; frame i is read
     at its time (rate x wall clock) into a one-frame slot; a frame still in the slot when the next
@@ -270,8 +271,9 @@ class _FrameSource:
     the newest image, as from a live driver).
     """
 
-    def __init__(self, sequence: Sequence, start: int, live: bool, rate: float, ahead: int = 4):
-        self.sequence, self.live, self.rate = sequence, live, rate
+    def __init__(self, sequence: Sequence, start: int, live: bool, rate: float, ahead: int = 4,
+                 prepare: Callable[[Frame], Any] = lambda frame: frame):
+        self.sequence, self.live, self.rate, self.prepare = sequence, live, rate, prepare
         self.timestamps = np.asarray(sequence.timestamps, np.float64)
         self._cv = threading.Condition()
         self._frames: list[Frame] = []
@@ -291,7 +293,7 @@ class _FrameSource:
                 dropped: list[int] = []
                 if self.live:
                     i, dropped = _next_live(self.timestamps, i, t0, ts0, self.rate)
-                frame = self.sequence[i]
+                frame = self.prepare(self.sequence[i])
                 with self._cv:
                     self._dropped.extend(dropped)
                     if self.live and self._frames:  # the tracker did not take the previous one
@@ -308,8 +310,9 @@ class _FrameSource:
             self._ended = True
             self._cv.notify_all()
 
-    def next(self) -> tuple[Frame | None, list[int]]:
-        """The next frame to track (None after the last) and the frames dropped before it."""
+    def next(self) -> tuple[Any, list[int]]:
+        """The next frame to track, as prepared (None after the last), and the frames dropped
+        before it."""
         with self._cv:
             while not self._frames and not self._ended:
                 self._cv.wait()
@@ -363,7 +366,7 @@ def _serve() -> None:
 def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, cursor: int,
            commands: queue.Queue, send) -> None:
     t0 = time.perf_counter()
-    source = _FrameSource(sequence, int(cursor), mode == "live", rate)
+    source = _FrameSource(sequence, int(cursor), mode == "live", rate, prepare=frontend.prepare)
 
     def serve_commands(block: bool) -> bool:
         """Answer pending commands; False when the parent asks the child to end."""
