@@ -109,6 +109,23 @@ def test_prepared_frames_track_like_raw_ones_and_keep_their_feature_time(tmp_pat
     assert (feats > 0).all() and (track >= feats).all()
 
 
+def test_run_sequence_with_prefetch_gives_the_same_run(tmp_path):
+    _, seq, factory = _setup(tmp_path)
+    plain_fe, ahead_fe = factory(), factory()
+    plain = run_sequence(plain_fe, seq, frames=range(2, len(seq)))
+    seen = []
+    ahead = run_sequence(ahead_fe, seq, frames=range(2, len(seq)), prefetch=2,
+                         on_frame=lambda frame, res: seen.append(frame.index))
+    assert seen == list(range(2, len(seq)))
+    assert [r.frame_index for r in ahead.results] == seen
+    assert [r.kf_id for r in ahead.results] == [r.kf_id for r in plain.results]
+    want = plain_fe.trajectory()
+    assert max(np.abs(ahead_fe.trajectory()[i] - want[i]).max() for i in want) == 0.0
+    assert np.array_equal(ahead.update.points, plain.update.points)
+    # process_s still counts each frame's features (built in the reader thread)
+    assert ahead.process_s >= sum(ahead_fe.times["features"])
+
+
 def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):
     import threading
 

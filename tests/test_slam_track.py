@@ -25,6 +25,7 @@ def test_track_writes_trajectory_keyframes_and_metrics(tmp_path):
     assert saved["tracked_fraction"] == pytest.approx(10 / 12)
     assert saved["ate"]["align"] == "se3" and saved["ate_rmse_m"] < 0.01
     assert saved["tracking_fps"] > 0 and saved["keyframes"] >= 1
+    assert 0 < saved["wall_fps"] == pytest.approx(saved["frames"] / saved["wall_s"])
     lines = [ln for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if ln.strip()]
     assert len(lines) == 10 and len(lines[0].split()) == 8
     assert m["ate_rmse_m"] == saved["ate_rmse_m"]

@@ -107,3 +107,8 @@ class Frontend(abc.ABC):
 
     def load_state_dict(self, state: dict) -> None:
         raise NotImplementedError(f"{type(self).__name__} does not support checkpointing")
+
+
+def prepared_seconds(frame) -> float:
+    """Wall seconds Frontend.prepare spent on a prepared frame (0 for a raw one)."""
+    return float(getattr(frame, "build_seconds", (0.0, 0.0))[0])

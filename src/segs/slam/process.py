@@ -34,7 +34,7 @@ import numpy as np
 
 from segs.data.frame import Frame, Sequence
 from segs.errors import ConfigError
-from segs.slam.base import FrameResult, Frontend, MapUpdate
+from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
 
 MODES = ("interleaved", "process", "live")
 
@@ -390,7 +390,9 @@ def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, curso
             break
         ts = time.perf_counter()
         res = frontend.process(frame)
-        seconds = time.perf_counter() - ts
+        # the frame's own cost: tracking plus the features the source built ahead (their wall
+        # time, kept on the prepared frame), as when process() builds them
+        seconds = time.perf_counter() - ts + prepared_seconds(frame)
         send(("frame", frame.index, res.w2c, frontend.poll(), frontend.keyframe_frames(), seconds, dropped))
     update = frontend.finish()
     report = {"trajectory": frontend.trajectory(), "lost": frontend.lost_frames(),

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 from segs.data.frame import Frame, Sequence
-from segs.slam.base import FrameResult, Frontend, MapUpdate
+from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
 
 
 @dataclass
@@ -21,14 +23,20 @@ class RunResult:
 
 
 def run_sequence(frontend: Frontend, sequence: Sequence, frames: Iterable[int] | None = None,
-                 on_frame: Callable[[Frame, FrameResult], None] | None = None) -> RunResult:
-    """Process the frames (default: all) in order, polling after each, then finish()."""
+                 on_frame: Callable[[Frame, FrameResult], None] | None = None,
+                 prefetch: int = 0) -> RunResult:
+    """Process the frames (default: all) in order, polling after each, then finish().
+
+    prefetch: frames read and prepared (`Frontend.prepare`: features) ahead in a background
+    thread while the current one is tracked; the results are the same, only the wall clock
+    differs. process_s counts each frame's prepare time as well, so it stays the per-frame cost.
+    """
     out = RunResult()
-    for i in range(len(sequence)) if frames is None else frames:
-        frame = sequence[i]
+    indices = range(len(sequence)) if frames is None else frames
+    for frame, item in _frames(frontend, sequence, indices, prefetch):
         t0 = time.perf_counter()
-        res = frontend.process(frame)
-        out.process_s += time.perf_counter() - t0
+        res = frontend.process(item)
+        out.process_s += time.perf_counter() - t0 + prepared_seconds(item)
         out.results.append(res)
         out.update = out.update.merge(frontend.poll())
         if on_frame is not None:
@@ -37,3 +45,28 @@ def run_sequence(frontend: Frontend, sequence: Sequence, frames: Iterable[int] |
     out.update = out.update.merge(frontend.finish())
     out.finish_s = time.perf_counter() - t0
     return out
+
+
+def _frames(frontend: Frontend, sequence: Sequence, indices: Iterable[int],
+            ahead: int) -> Iterator[tuple[Frame, Frame]]:
+    """(frame, what process() gets) in order: the raw frame, or with ahead > 0 the frame as
+    prepared by a reader thread that stays up to `ahead` frames in front."""
+    if ahead <= 0:
+        for i in indices:
+            frame = sequence[i]
+            yield frame, frame
+        return
+
+    def load(i: int) -> tuple[Frame, Frame]:
+        frame = sequence[i]
+        return frame, frontend.prepare(frame)
+
+    it = iter(indices)
+    with ThreadPoolExecutor(1, thread_name_prefix="segs-frames") as pool:
+        pending = deque(pool.submit(load, i) for _, i in zip(range(ahead), it))
+        while pending:
+            done = pending.popleft()
+            nxt = next(it, None)
+            if nxt is not None:
+                pending.append(pool.submit(load, nxt))
+            yield done.result()
