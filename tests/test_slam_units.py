@@ -84,6 +84,27 @@ def test_knn_hamming_equals_bfmatcher_knn_including_ties():
             assert [m.distance for m in ms] == dist[i][nidx[i] >= 0].tolist()
 
 
+def test_knn_by_node_is_knn_within_each_vocabulary_node():
+    from segs.slam.matching import _knn_by_node
+
+    rng = np.random.default_rng(7)
+    a = rng.integers(0, 256, (120, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (90, 32), dtype=np.uint8)
+    b[:40] = a[:40] ^ (rng.random((40, 32)) < 0.05).astype(np.uint8)
+    na, nb = rng.integers(0, 4, 120), rng.integers(0, 5, 90)
+    q, t, d = _knn_by_node(a, na, b, nb, 3)
+    assert (na[q] == nb[t]).all() and np.all(np.diff(q) >= 0)  # same node, query-major
+    for i in range(len(a)):
+        cand = np.flatnonzero(nb == na[i])
+        dist = hamming_matrix(a[i:i + 1], b[cand])[0]
+        want = np.sort(dist)[:3]
+        assert np.array_equal(d[q == i], want)  # the 3 nearest of the node, nearest first
+    # one node for all: the plain kNN
+    q1, t1, d1 = _knn_by_node(a, np.zeros(120, np.int64), b, np.zeros(90, np.int64), 3)
+    dist, nidx = knn_hamming(a, b, 3)
+    assert np.array_equal(q1, np.repeat(np.arange(120), 3)) and np.array_equal(d1, dist.ravel())
+
+
 def test_keypoint_grid_query_equals_brute_force():
     rng = np.random.default_rng(0)
     uv = rng.uniform([0, 0], [320, 240], (400, 2))
@@ -282,7 +303,8 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
         OrbFrontend(cam, "rgbd", tracking={"no_such_key": 1})
     with pytest.raises(ConfigError):
         OrbFrontend(cam, "fisheye")
-    for key, value in (("ba_iterations", (0, 1)), ("ba_iterations", (4, -1)), ("ba_min_gain", 1.5), ("ba_window", 0)):
+    for key, value in (("ba_iterations", (0, 1)), ("ba_iterations", (4, -1)), ("ba_min_gain", 1.5), ("ba_window", 0),
+                       ("triangulate_node_level", -1), ("triangulate_node_level", 9)):
         with pytest.raises(ConfigError, match=f"slam.mapping.{key}"):
             OrbFrontend(cam, "rgbd", mapping={key: value})
     conf = yaml.safe_load((ROOT / "conf/slam/orb.yaml").read_text())
@@ -291,6 +313,18 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
         default = C.build(cls, None, group)
         from_yaml = C.build(cls, conf[group], group)
         assert default == from_yaml, f"conf/slam/orb.yaml {group} differs from segs.slam.config defaults"
+
+
+def test_triangulation_under_vocabulary_nodes_tracks_and_keeps_words():
+    seq = SyntheticSequence(sensor="rgbd", n_frames=16, width=320, height=240, trajectory="orbit", speed=0.2, seed=0)
+    fe = OrbFrontend(seq.camera, "rgbd", mapping={"triangulate_node_level": 1})
+    run = run_sequence(fe, seq)
+    assert all(r.tracked for r in run.results) and len(fe.map.kfs) >= 2
+    kf1, kf2 = (fe.map.kfs[k] for k in sorted(fe.map.kfs)[:2])
+    assert len(kf1.words) == len(kf1.kp)
+    n1, n2 = fe.mapper._nodes(kf1, kf2)
+    assert np.array_equal(n1, kf1.words // 1000) and n2.max() < 10  # k = 10, depth 4: level-1 nodes
+    assert fe.vocab.bow(kf1.words)[0].tolist() == fe.kfdb.bows[kf1.kf_id][0].tolist()
 
 
 def test_threaded_mode_and_checkpoint_round_trip():

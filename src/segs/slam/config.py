@@ -87,6 +87,7 @@ class MappingConfig:
     fuse_second_neighbors: int = 5  # ... and this many best covisible of each (ORB-SLAM: 5)
     fuse_th: float = 3.0  # projection radius (x level scale) of point fusion (ORB-SLAM: 3)
     triangulate_ratio: float = 0.6
+    triangulate_node_level: int = 0  # candidates under one vocabulary node of this level (0: all)
     scale_consistency: float = 1.5  # distance ratio vs octave ratio within this x scale_factor (ratioFactor)
     min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
@@ -115,6 +116,8 @@ class MappingConfig:
             out.append(("ba_min_gain", f"a fraction of the cost in [0, 1); got {self.ba_min_gain}"))
         if self.ba_window < 1:
             out.append(("ba_window", f"at least 1 keyframe; got {self.ba_window}"))
+        if self.triangulate_node_level < 0:
+            out.append(("triangulate_node_level", f"a vocabulary tree level >= 0; got {self.triangulate_node_level}"))
         if self.ba_fixed_max < 0:
             out.append(("ba_fixed_max", f"at least 0 keyframes; got {self.ba_fixed_max}"))
         return out

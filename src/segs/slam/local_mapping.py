@@ -61,8 +61,10 @@ class LocalMapper(StateFields):
 
     def _index_keyframe(self, kf: KeyFrame) -> None:
         """The keyframe's bag of words into the keyframe database (once)."""
+        if len(kf.words) != len(kf.kp):
+            kf.words = self.vocab.words(kf.kp.desc)
         if kf.kf_id not in self.kfdb.bows:
-            self.kfdb.add(kf.kf_id, self.vocab.bow_of(kf.kp.desc))
+            self.kfdb.add(kf.kf_id, self.vocab.bow(kf.words))
 
     def _emit_points(self, pids: np.ndarray) -> None:
         """Points pids reach the mapper (those valid and not handed out before)."""
@@ -162,7 +164,8 @@ class LocalMapper(StateFields):
         for _, n in sorted(partners, key=lambda t: t[0]) if mono else partners:
             kf2 = m.kfs[n]
             F = fundamental(kf.w2c, kf2.w2c, K)
-            i1, i2 = match_for_triangulation(kf, kf2, F, su.sigma2, ratio=self.cfg.triangulate_ratio)
+            i1, i2 = match_for_triangulation(kf, kf2, F, su.sigma2, ratio=self.cfg.triangulate_ratio,
+                                             nodes=self._nodes(kf, kf2))
             if len(i1) == 0:
                 continue
             X, ok = self._triangulate_pairs(kf, kf2, i1, i2, P1, base_stereo, ratio_factor)
@@ -173,6 +176,14 @@ class LocalMapper(StateFields):
                 m.update_geometry(pids)
                 m.update_descriptors(pids)
                 self.add_recent(pids)
+
+    def _nodes(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[np.ndarray, np.ndarray] | None:
+        """Vocabulary-tree node per keypoint of both keyframes at triangulate_node_level (None:
+        level 0, or a keyframe without words, e.g. from an older checkpoint)."""
+        level = self.cfg.triangulate_node_level
+        if level <= 0 or len(kf1.words) != len(kf1.kp) or len(kf2.words) != len(kf2.kp):
+            return None
+        return self.vocab.nodes(kf1.words, level), self.vocab.nodes(kf2.words, level)
 
     def _triangulate_pairs(self, kf1, kf2, i1, i2, P1, base_stereo, ratio_factor):
         su = self.setup

@@ -125,6 +125,28 @@ def knn_hamming(da: np.ndarray, db: np.ndarray, k: int) -> tuple[np.ndarray, np.
     return dist, nidx
 
 
+def _knn_by_node(da: np.ndarray, na: np.ndarray, db: np.ndarray, nb: np.ndarray,
+                 k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """knn_hamming of da [A,32] against the db [B,32] under the same node (na [A], nb [B]) ->
+    (rows of da [P], rows of db [P], distances [P] float64), query-major, nearest first."""
+    qs, ts, ds = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0)]
+    oa, ob = np.argsort(na, kind="stable"), np.argsort(nb, kind="stable")
+    ua, sa = np.unique(na[oa], return_index=True)
+    ub, sb = np.unique(nb[ob], return_index=True)
+    ea, eb = np.r_[sa[1:], len(oa)], np.r_[sb[1:], len(ob)]
+    common, ia, ib = np.intersect1d(ua, ub, return_indices=True)
+    for x, y in zip(ia.tolist(), ib.tolist()):
+        a, b = oa[sa[x]:ea[x]], ob[sb[y]:eb[y]]
+        dist, nidx = knn_hamming(da[a], db[b], k)
+        found = nidx >= 0
+        qs.append(a[np.nonzero(found)[0]])
+        ts.append(b[nidx[found]])
+        ds.append(dist[found].astype(np.float64))
+    q, t, d = np.concatenate(qs), np.concatenate(ts), np.concatenate(ds)
+    order = np.lexsort((d, q))
+    return q[order], t[order], d[order]
+
+
 def match_frame_to_kf(frame, kf, valid: np.ndarray, ratio: float = 0.75,
                       max_dist: int = TH_LOW) -> tuple[np.ndarray, np.ndarray]:
     """Frame keypoints vs kf's keypoints that carry a valid map point.
@@ -143,21 +165,26 @@ def match_frame_to_kf(frame, kf, valid: np.ndarray, ratio: float = 0.75,
 
 def match_for_triangulation(kf1, kf2, F12: np.ndarray, sigma2: np.ndarray, ratio: float = 0.6,
                             max_dist: int = TH_LOW, epi_chi2: float = CHI2_EPIPOLAR,
-                            knn: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                            knn: int = 8, nodes: tuple[np.ndarray, np.ndarray] | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
     """Unmatched keypoints of kf1 vs kf2 satisfying the epipolar constraint.
 
     F12 [3,3]: x2^T F12 x1 = 0; knn: descriptor candidates per keypoint tried against the epipolar
-    line. Returns (idx1 [K], idx2 [K]).
+    line; nodes: vocabulary-tree node per keypoint of kf1 [N1] and kf2 [N2], candidates only
+    under the same node (None: every pair). Returns (idx1 [K], idx2 [K]).
     """
     i1 = np.flatnonzero(kf1.points < 0)
     i2 = np.flatnonzero(kf2.points < 0)
     if len(i1) == 0 or len(i2) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     # descriptors first (cv2 kNN on the free keypoints), then the epipolar test on the survivors
-    dist, nidx = knn_hamming(kf1.kp.desc[i1], kf2.kp.desc[i2], knn)
-    found = nidx >= 0  # [N1,k] in query-major, nearest-first order
-    q = np.nonzero(found)[0].astype(np.int64)
-    t, d = nidx[found].astype(np.int64), dist[found].astype(np.float64)
+    if nodes is None:
+        dist, nidx = knn_hamming(kf1.kp.desc[i1], kf2.kp.desc[i2], knn)
+        found = nidx >= 0  # [N1,k] in query-major, nearest-first order
+        q = np.nonzero(found)[0].astype(np.int64)
+        t, d = nidx[found].astype(np.int64), dist[found].astype(np.float64)
+    else:
+        q, t, d = _knn_by_node(kf1.kp.desc[i1], nodes[0][i1], kf2.kp.desc[i2], nodes[1][i2], knn)
     if len(q) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     x1 = np.c_[kf1.kp.uv[i1[q]], np.ones(len(q))]

@@ -89,6 +89,9 @@ class OrbFrontend(Frontend):
         self.builder = FrameBuilder(camera, sensor, self.extractor, bf, tc.max_depth, stereo, fc.grid_cell,
                                     tc.depth_edge_ratio)
         self.vocab = Vocabulary.load(self.cfg.loop.vocabulary)
+        if self.cfg.mapping.triangulate_node_level > len(self.vocab.levels):
+            raise ConfigError(f"slam.mapping.triangulate_node_level: at most the vocabulary's depth "
+                              f"{len(self.vocab.levels)}; got {self.cfg.mapping.triangulate_node_level}")
         # threaded: bundle adjustment in a child process (gtsam holds the GIL while optimising)
         self.ba = (BundleAdjusterProcess if self.threaded else BundleAdjuster)(
             camera.K, bf if sensor != "mono" else 0.0, scales, ur_sigma=self.setup.ur_sigma)

@@ -179,6 +179,10 @@ class Vocabulary:
             node = node * self.k + dist.argmin(1)
         return node
 
+    def nodes(self, words: np.ndarray, level: int) -> np.ndarray:
+        """Ancestor node id [N] of words [N] at tree level `level` (1: the root's k children)."""
+        return np.asarray(words, np.int64) // self.k ** (len(self.levels) - int(level))
+
     def bow(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """tf-idf vector of a word list -> (sorted word ids [W], L1-normalised weights [W])."""
         if len(words) == 0:
