@@ -134,7 +134,7 @@ def _knn_by_node(da: np.ndarray, na: np.ndarray, db: np.ndarray, nb: np.ndarray,
     ua, sa = np.unique(na[oa], return_index=True)
     ub, sb = np.unique(nb[ob], return_index=True)
     ea, eb = np.r_[sa[1:], len(oa)], np.r_[sb[1:], len(ob)]
-    common, ia, ib = np.intersect1d(ua, ub, return_indices=True)
+    _, ia, ib = np.intersect1d(ua, ub, return_indices=True)
     for x, y in zip(ia.tolist(), ib.tolist()):
         a, b = oa[sa[x]:ea[x]], ob[sb[y]:eb[y]]
         dist, nidx = knn_hamming(da[a], db[b], k)
