@@ -8,6 +8,7 @@ loss), optimizer step. Prints one table (medians) and writes outputs/bench/train
 
     python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
     python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
+    python bench/train_step.py --downscale 4   # the timed iterations at 1/4 size (coarse-to-fine's first phase)
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from segs.config import compose, instantiate, make_sequence
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
 from segs.modules.optim import make_adam, set_learning_rates
+from segs.modules.resolution import coarse_camera, coarse_image
 from segs.modules.scene_model import View
 from segs.raster import rasterize
 
@@ -50,13 +52,13 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def iteration(module: GaussianMapperModule, opt, step: int, timed: bool) -> dict:
+def iteration(module: GaussianMapperModule, opt, step: int, timed: bool, factor: int = 1) -> dict:
     t = {}
     dev = str(module.device)
     clock = lambda: (_sync(dev), time.perf_counter())[1]  # noqa: E731
     kf = module.views.sample()
-    view = View(kf.w2c.to(dev), kf.camera, kf.kf_id)
-    gt = kf.rgb().to(dev)
+    view = View(kf.w2c.to(dev), coarse_camera(kf.camera, factor), kf.kf_id)
+    gt = coarse_image(kf.rgb().to(dev), factor)
     t0 = clock()
     dec = module.model.decode(view, step)
     t1 = clock()
@@ -80,17 +82,18 @@ def iteration(module: GaussianMapperModule, opt, step: int, timed: bool) -> dict
 
 
 def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu",
-          experiment: str = "sample", extra=()) -> dict:
+          experiment: str = "sample", extra=(), factor: int = 1) -> dict:
     torch.manual_seed(0)
     module = build(model, schedule, backend, device, experiment, extra)
     opt = make_adam(module.model.param_groups())
     for s in range(warmup):
         iteration(module, opt, s, False)
-    rows = [iteration(module, opt, warmup + i, True) for i in range(iters)]
+    rows = [iteration(module, opt, warmup + i, True, factor) for i in range(iters)]
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     med["anchors"] = int(module.model.counts()["anchors"])
     view = module.views.sample()
-    med["size"] = f"{view.camera.width}x{view.camera.height}"
+    cam = coarse_camera(view.camera, factor)
+    med["size"] = f"{cam.width}x{cam.height}"
     return med
 
 
@@ -104,9 +107,10 @@ def main() -> None:
     p.add_argument("--device", default="cpu", help="torch device of the model (cuda with --backend cuda)")
     p.add_argument("--experiment", default="sample", help="+experiment=NAME (with slam=known_poses)")
     p.add_argument("--extra", nargs="*", default=[], help="more config overrides, e.g. data.frames=[100,250]")
+    p.add_argument("--downscale", type=int, default=1, help="time the iterations at 1/N of the image size (warm-up at full size)")
     p.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "train_step.json"))
     args = p.parse_args()
-    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra)
+    results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra, args.downscale)
                for m in args.models}
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else None

@@ -80,7 +80,7 @@ def _pose(x: float) -> np.ndarray:
 
 def test_the_mapper_module_implements_the_contract():
     node = model_node("segs", k=2, feature_dim=4, hidden=4)
-    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15})
+    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)
     assert isinstance(module, GaussianMapper) and isinstance(RecordingMapper(), GaussianMapper)
@@ -125,7 +125,7 @@ def _old_layout(state: dict, renames: dict[str, str]) -> dict:
 
 @pytest.mark.parametrize("name", ["segs", "plain_3dgs"])
 def test_checkpoints_of_the_old_row_layout_load(name):
-    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15})
+    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     extra = {"min_new_points": 1} if name == "segs" else {}
     make = lambda: GaussianMapperModule(build_model(model_node(name, **extra)), mapping, raster, seed=0)  # noqa: E731

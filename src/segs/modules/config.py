@@ -119,6 +119,8 @@ class MappingConfig:
     view_budget: int
     min_scene_extent: float
     adam_eps: float
+    num_downscales: int  # coarse-to-fine: first steps at 1/2^n of the image size (0 = off)
+    downscale_phase: float  # fraction of the run each coarser level lasts
 
 
 @dataclass
@@ -180,6 +182,9 @@ def mapping_config(node) -> MappingConfig:
     _check("config key mapping.view_budget", cfg.view_budget >= 1, cfg.view_budget, "an integer >= 1")
     _check("config key mapping.min_scene_extent", cfg.min_scene_extent > 0, cfg.min_scene_extent, "a number > 0 (metres)")
     _check("config key mapping.adam_eps", cfg.adam_eps > 0, cfg.adam_eps, "a number > 0")
+    _check("config key mapping.num_downscales", 0 <= cfg.num_downscales <= 4, cfg.num_downscales, "an integer 0..4")
+    _check("config key mapping.downscale_phase", 0 < cfg.downscale_phase and cfg.num_downscales * cfg.downscale_phase <= 1,
+           cfg.downscale_phase, "a fraction > 0 with num_downscales * downscale_phase <= 1")  # fmt: skip
     return cfg
 
 

@@ -19,6 +19,7 @@ from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.contract import MapCounts, TrainingView
 from segs.modules.metrics import psnr
 from segs.modules.optim import make_adam, set_learning_rates
+from segs.modules.resolution import coarse_camera, coarse_depth, coarse_image, downscale_factor
 from segs.modules.scene_model import SceneModel, View, upgrade_state_keys
 from segs.modules.training_views import TrainingViews
 from segs.raster import rasterize
@@ -30,7 +31,8 @@ class GaussianMapperModule(L.LightningModule):
     """Trains a SceneModel (SEGS anchors or plain 3D-GS) on the training views of the bridge.
 
     mapping.view_budget: uses per keyframe before every keyframe gets one more (reference: 2 for
-    TUM/EuRoC, 8 for Replica); seed: the view sampler's.
+    TUM/EuRoC, 8 for Replica); mapping.num_downscales / downscale_phase: the coarse-to-fine
+    resolution schedule (segs.modules.resolution); seed: the view sampler's.
     """
 
     def __init__(self, model: SceneModel, mapping: MappingConfig, raster: RasterConfig, seed: int):
@@ -41,6 +43,7 @@ class GaussianMapperModule(L.LightningModule):
         self.views = TrainingViews(mapping.view_budget, seed)
         self.min_scene_extent = mapping.min_scene_extent
         self.adam_eps = mapping.adam_eps
+        self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
         self.iteration_ms: list[float] = []
         self.loss_history: list[float] = []
 
@@ -130,10 +133,11 @@ class GaussianMapperModule(L.LightningModule):
         opt = self.optimizers(use_pl_optimizer=False)
         step = self.global_step
         kf = self.views.sample()
-        view = View(kf.w2c.to(self.device), kf.camera, kf.kf_id)
-        gt = kf.rgb().to(self.device)
+        factor = self.resolution_factor(step)
+        view = View(kf.w2c.to(self.device), coarse_camera(kf.camera, factor), kf.kf_id)
+        gt = coarse_image(kf.rgb().to(self.device), factor)
         out, decoded = self.render(view, step)
-        depth = kf.depth.to(self.device) if kf.depth is not None else None
+        depth = coarse_depth(kf.depth.to(self.device), factor) if kf.depth is not None else None
         terms = self.model.loss(out, gt, decoded, step, depth)
         if terms["total"].requires_grad:
             self.manual_backward(terms["total"])
@@ -144,16 +148,22 @@ class GaussianMapperModule(L.LightningModule):
         edits = self.model.maintain(step + 1, opt)
         self.iteration_ms.append((time.perf_counter() - t0) * 1000.0)
         self.loss_history.append(float(terms["total"].detach()))
-        self._log_step(terms, out.image.detach(), gt, edits)
+        self._log_step(terms, out.image.detach(), gt, edits, factor)
         return terms["total"].detach()
 
-    def _log_step(self, terms: dict, image: torch.Tensor, gt: torch.Tensor, edits: dict) -> None:
+    def resolution_factor(self, step: int) -> int:
+        """Image size divisor of training step `step` (1 = full size; coarse-to-fine schedule)."""
+        total = self.trainer.max_steps if self._trainer is not None else -1
+        return downscale_factor(step, total, self.num_downscales, self.downscale_phase)
+
+    def _log_step(self, terms: dict, image: torch.Tensor, gt: torch.Tensor, edits: dict, factor: int) -> None:
         counts = self.model.counts()
         self.log("loss", terms["total"].detach(), prog_bar=True, on_step=True, on_epoch=False)
         self.log("gaussians", float(counts["gaussians"]), prog_bar=True, on_step=True, on_epoch=False)
         metrics = {f"train/{k}": v.detach() for k, v in terms.items() if k != "total" and torch.is_tensor(v)}
         metrics["train/psnr"] = psnr(image, gt)
         metrics["train/iteration_ms"] = self.iteration_ms[-1]
+        metrics["train/downscale"] = float(factor)
         metrics["model/anchors"] = float(counts["anchors"])
         metrics["model/keyframes"] = float(len(self.views))
         metrics.update({f"densify/{k}": float(v) for k, v in edits.items()})
