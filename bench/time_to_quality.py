@@ -52,7 +52,10 @@ DATASETS = {
                 "data.downscale=2", "eval.holdout_every=8"],
     "sample": ["+experiment=sample"],
 }  # fmt: skip
-METHODS = {"segs": [], "plain_3dgs": ["+ablation=plain_3dgs"]}
+# segs_c2f: SEGS with the coarse-to-fine resolution (1/4 size for the first quarter of the steps,
+# 1/2 for the next); its warm-up runs at 1/4 size, so give it --max-steps or --pace-from
+METHODS = {"segs": [], "plain_3dgs": ["+ablation=plain_3dgs"],
+           "segs_c2f": ["mapping.num_downscales=2", "mapping.downscale_phase=0.25"]}  # fmt: skip
 # no loggers, bars, image logging, checkpoints or signal handlers: the clock times mapping only
 QUIET = ["logger=none", "~callbacks.progress_bar", "~callbacks.image_logger", "~callbacks.periodic_checkpoint", "~callbacks.interrupt",
          "callbacks.slam_bridge.progress=false", "trainer.enable_progress_bar=false", "eval.progress=false"]  # fmt: skip
@@ -320,7 +323,7 @@ def main() -> None:
     p.add_argument("--sample-budget", type=float, default=300.0, help="training seconds per sample curve (0: --budget)")
     p.add_argument("--marks", type=float, nargs="+", default=list(MARKS), help="training seconds to score at (below the budget)")
     p.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
-    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    p.add_argument("--methods", nargs="+", default=["segs", "plain_3dgs"], choices=list(METHODS))
     p.add_argument("--max-steps", type=int, default=None, help="trainer.max_steps of every curve (default: from a warm-up)")
     p.add_argument("--warmup-s", type=float, default=WARMUP_S, help="seconds of warm-up training to measure steps/s")
     p.add_argument("--pace-from", type=Path, default=None,
