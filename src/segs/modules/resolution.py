@@ -27,13 +27,12 @@ def downscale_factor(step: int, total_steps: int, num_downscales: int, phase: fl
 
 
 def coarse_camera(camera: Camera, factor: int) -> Camera:
-    """Intrinsics of the image area-averaged by factor (OpenCV centres at integers: a pixel
-    centre u maps to (u + 0.5) / factor - 0.5)."""
+    """Intrinsics of the image area-averaged by factor: Camera.scaled of the image cropped to a
+    multiple of factor (the crop drops right / bottom pixels, so the principal point stays)."""
     if factor == 1:
         return camera
-    return replace(camera, fx=camera.fx / factor, fy=camera.fy / factor,
-                   cx=(camera.cx + 0.5) / factor - 0.5, cy=(camera.cy + 0.5) / factor - 0.5,
-                   width=camera.width // factor, height=camera.height // factor)  # fmt: skip
+    cropped = replace(camera, width=camera.width // factor * factor, height=camera.height // factor * factor)
+    return cropped.scaled(factor)
 
 
 def coarse_image(image: torch.Tensor, factor: int) -> torch.Tensor:
