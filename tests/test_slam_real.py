@@ -45,6 +45,22 @@ def test_tum_cabinet_tracks_without_error(sensor, frames):
     assert res["rmse"] is not None and np.isfinite(res["rmse"])
 
 
+def test_tum_cabinet_rgbd_depth_tolerant_retry():
+    """The cabinet's depth disagrees between views 0.15 m apart by several times the Kinect noise
+    model: the second frame is lost with that model alone, and tracked, at the right pose, by the
+    retry with the looser depth model (slam.tracking.rgbd_retry_depth_noise)."""
+    seq = TumSequence(DATA / "tum_fr3_cabinet_kf", sensor="rgbd")
+    fes = {}
+    for k in (0.0, 0.012):
+        fes[k] = OrbFrontend(seq.camera, "rgbd", features=TUM_FEATURES, tracking={"rgbd_retry_depth_noise": k})
+        run_sequence(fes[k], seq, frames=range(6))
+    assert 1 in fes[0.0].lost_frames() and fes[0.0].stats()["depth_retries"] == 0
+    fe = fes[0.012]
+    assert fe.lost_frames() == [] and 1 in fe.tracker.depth_retries
+    assert fe.stats()["depth_retries"] == len(fe.tracker.depth_retries) < 6
+    assert ate(seq.timestamps, fe.trajectory(), seq.gt_poses, "se3")["rmse"] < 0.05
+
+
 def test_euroc_stereo_pairs_track_at_rest():
     seq = EurocSequence(DATA / "euroc_v101_micro", sensor="stereo")
     fe = OrbFrontend(seq.camera, "stereo")

@@ -307,6 +307,9 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
                        ("triangulate_node_level", -1), ("triangulate_node_level", 9)):
         with pytest.raises(ConfigError, match=f"slam.mapping.{key}"):
             OrbFrontend(cam, "rgbd", mapping={key: value})
+    for key, value in (("rgbd_depth_noise", 0.0), ("rgbd_retry_depth_noise", -0.01)):
+        with pytest.raises(ConfigError, match=f"slam.tracking.{key}"):
+            OrbFrontend(cam, "rgbd", tracking={key: value})
     conf = yaml.safe_load((ROOT / "conf/slam/orb.yaml").read_text())
     assert conf["_target_"] == "segs.slam.orb.OrbFrontend"
     for group, cls in C.GROUPS.items():

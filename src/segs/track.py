@@ -128,7 +128,9 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     print(
         f"\nsegs.track: results in {out}\n"
         f"  {len(traj)}/{n} frames tracked ({100 * len(traj) / n:.1f} %), {len(kfs)} keyframes, "
-        f"{len(result.update.points)} map points\n"
+        f"{len(result.update.points)} map points"
+        + (f", {stats['depth_retries']} frames by the depth-tolerant retry" if stats.get("depth_retries") else "")
+        + "\n"
         f"  ATE RMSE ({align}) {'n/a' if rmse is None else f'{rmse * 100:.2f} cm'}"
         f" over {ate_result['pairs']} frames\n"
         f"  {metrics['tracking_fps'] or 0:.1f} frames/s in process() ({result.process_s:.1f} s), "

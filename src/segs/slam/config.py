@@ -23,6 +23,7 @@ class FeatureConfig:
 class TrackingConfig:
     rgbd_baseline: float = 0.08  # virtual stereo baseline of RGB-D (ORB-SLAM's bf / fx)
     rgbd_depth_noise: float = 0.0015  # RGB-D depth sigma = k z^2 (1/m), Kinect v1; ORB-SLAM: 1 px disparity
+    rgbd_retry_depth_noise: float = 0.012  # RGB-D: k of one more try for a frame the model above loses (0: off)
     close_depth_factor: float = 40.0  # "close" points: depth < factor * baseline (ORB-SLAM ThDepth)
     max_depth: float = 10.0  # depths beyond are unknown
     depth_edge_ratio: float = 0.05  # RGB-D: no depth where the 3x3 depth range exceeds this x depth
@@ -68,6 +69,15 @@ class TrackingConfig:
     recent_lost_covisible: int = 2  # ... and this many of its best covisible keyframes
     restart_after_lost: int = 10  # stereo / RGB-D: frames lost before a new map segment anchored
     # at the last tracked pose (0: never; monocular never restarts: its scale would be unrelated)
+
+    def problems(self) -> list[tuple[str, str]]:
+        """(key, what is wrong) for values tracking cannot run with."""
+        out = []
+        if not self.rgbd_depth_noise > 0:
+            out.append(("rgbd_depth_noise", f"a depth sigma coefficient > 0 (1/m); got {self.rgbd_depth_noise}"))
+        if self.rgbd_retry_depth_noise < 0:
+            out.append(("rgbd_retry_depth_noise", f">= 0 (0: no retry); got {self.rgbd_retry_depth_noise}"))
+        return out
 
 
 @dataclass

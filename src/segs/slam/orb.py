@@ -230,6 +230,7 @@ class OrbFrontend(Frontend):
             "culled_keyframes": len(self.map.culled),
             "points": int(self.map.valid[: self.map.n].sum()),
             "loops": len(self.loop.loops),
+            "depth_retries": len(self.tracker.depth_retries),
             "track_ms_median": float(np.median(t["track"]) * 1e3) if len(t["track"]) else float("nan"),
             "mapping_ms_median": float(np.median(t["mapping"]) * 1e3) if len(t["mapping"]) else float("nan"),
             "local_ba_ms_median": float(np.median(self.mapper.ba_times) * 1e3) if self.mapper.ba_times else float("nan"),

@@ -84,10 +84,15 @@ class Tracker(StateFields):
         self._local_kfs: list[int] = []
         self._local_pids = np.zeros(0, np.int64)
         self._max_inl = 0
+        # the disparity sigma of RGB-D residuals in use (pixels), and that of the depth-tolerant retry
+        self._ur_sigma = setup.ur_sigma
+        retry_k = cfg.rgbd_retry_depth_noise
+        self._depth_retry_sigma = setup.bf * retry_k if setup.sensor == "rgbd" and retry_k > 0 else None
+        self.depth_retries: list[int] = []  # frames tracked only by that retry
         self.mono_init = MonoInitializer(init_cfg, setup.K, setup.sigma2, self.seed) if setup.mono else None
 
     _STATE = ("poses", "state", "last", "velocity", "ref_kf", "last_kf_frame", "last_reloc_frame", "lost_since",
-              "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init")
+              "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init", "depth_retries")
 
     def load_state_dict(self, state: dict) -> None:
         """Checkpoints written before TrackingState hold the plain strings: read as the Enum."""
@@ -117,6 +122,8 @@ class Tracker(StateFields):
                 ok = self._track_reference(frame) and self._track_local_map(frame)
         else:
             ok = self._relocalize(frame)
+        if not ok and self._depth_retry_sigma is not None:
+            ok = self._retry_depth_tolerant(frame)
         if not ok:
             return self._lost(frame)
         if self.state != TrackingState.OK:
@@ -134,6 +141,23 @@ class Tracker(StateFields):
         if kf is None:
             frame.ref_kf = self.ref_kf
         return kf
+
+    def _retry_depth_tolerant(self, frame: SlamFrame) -> bool:
+        """RGB-D: the reference keyframe (or relocalization) once more with the looser depth model
+        (cfg.rgbd_retry_depth_noise) for a frame the sensor's model lost; counted in depth_retries."""
+        self._ur_sigma = self._depth_retry_sigma
+        try:
+            frame.points[:] = -1
+            frame.outlier[:] = False
+            if self.state == TrackingState.OK:
+                ok = self._track_reference(frame) and self._track_local_map(frame)
+            else:
+                ok = self._relocalize(frame)
+        finally:
+            self._ur_sigma = self.setup.ur_sigma
+        if ok:
+            self.depth_retries.append(frame.index)
+        return ok
 
     def _lost(self, frame: SlamFrame) -> None:
         frame.w2c = None
@@ -332,7 +356,7 @@ class Tracker(StateFields):
         ur = frame.ur[idx] if self.setup.sensor != "mono" else None
         w2c, inl = refine_pose(frame.w2c, m.pos[pids], frame.kp.uv[idx], ur,
                                1.0 / self.setup.sigma2[frame.kp.octave[idx]], self.setup.K, self.setup.bf,
-                               ur_sigma=self.setup.ur_sigma, warm=warm)
+                               ur_sigma=self._ur_sigma, warm=warm)
         frame.w2c = w2c
         frame.outlier[:] = False
         frame.outlier[idx[~inl]] = True
