@@ -10,8 +10,15 @@ Two ways that conversion could leave a floor under the ATE, each measured on a t
   more free parameters: an upper bound on what a better offset could give);
 - time: the ground truth read at frame i + d (linear interpolation of centres), d in frames.
 
+And one test of which trajectory the colour images agree with (--epipolar): for frame pairs d
+frames apart, SIFT matches (features the ORB frontend never saw) kept by a RANSAC fundamental
+matrix that knows neither trajectory, and the median Sampson distance of those matches under the
+relative pose of the ground truth and of the estimate (translation direction and rotation only:
+no scale, no alignment).
+
     python bench/ate_diagnostics.py                       # tracks the 600 frames first (defaults)
     python bench/ate_diagnostics.py --trajectory outputs/track/<run>/trajectory.txt
+    python bench/ate_diagnostics.py --trajectory ... --epipolar 5 15 30 60
 
 JSON: outputs/bench/ate_diagnostics.json.
 """
@@ -23,13 +30,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from segs.data.base import DepthRegistration
-from segs.data.seven_scenes import DEPTH_INTRINSICS, DEPTH_TO_COLOR, find_sequence, read_pose
-from segs.slam.geometry import umeyama
+from segs.data.seven_scenes import DEPTH_INTRINSICS, DEPTH_TO_COLOR, SevenScenesSequence, find_sequence, read_pose
+from segs.slam.geometry import fundamental, inv_se3, sampson_distance, umeyama
 
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
@@ -88,11 +96,83 @@ def diagnose(trajectory: Path, root: Path, offsets: list[float]) -> dict:
     return out
 
 
+def consistent_matches(grey_i: np.ndarray, grey_j: np.ndarray, sift, min_matches: int = 30):
+    """SIFT matches (ratio 0.8) between two uint8 images that a RANSAC fundamental matrix (1 px)
+    keeps -> (x_i [N,2], x_j [N,2], that F [3,3]), or None when fewer than min_matches survive."""
+    ki, di = sift.detectAndCompute(grey_i, None)
+    kj, dj = sift.detectAndCompute(grey_j, None)
+    if di is None or dj is None or len(ki) < min_matches or len(kj) < min_matches:
+        return None
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(di, dj, k=2)
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+    if len(good) < min_matches:
+        return None
+    xi = np.array([ki[m.queryIdx].pt for m in good])
+    xj = np.array([kj[m.trainIdx].pt for m in good])
+    cv2.setRNGSeed(0)
+    F, mask = cv2.findFundamentalMat(xi, xj, cv2.FM_RANSAC, 1.0, 0.999)
+    if F is None or F.shape != (3, 3) or mask is None or mask.sum() < min_matches:
+        return None
+    keep = mask.ravel().astype(bool)
+    return xi[keep], xj[keep], F
+
+
+def epipolar(trajectory: Path, root: Path, gaps: list[int], stride: int) -> list[dict]:
+    """Per gap d: median over frame pairs (i, i + d), i every `stride` frames, of the median Sampson
+    distance (px) of the pair's consistent SIFT matches under the ground truth's relative pose and
+    under the estimate's; the same under the RANSAC fundamental matrix itself (the best minimal
+    sample's, 7 free parameters: a scale for the matches' noise, not a floor, since it is not
+    refined; on exact synthetic frames the true pose scores below it); and the share of pairs where
+    the estimate's is the lower."""
+    est = np.loadtxt(trajectory, ndmin=2)
+    idx = np.round(est[:, 0] * FPS).astype(int)
+    est_c2w = {int(i): _c2w(row[1:]) for i, row in zip(idx, est)}
+    seq = SevenScenesSequence(root, sensor="rgbd")
+    K, sift, grey = seq.camera.K, cv2.SIFT_create(), {}
+
+    def image(i: int) -> np.ndarray:
+        if i not in grey:
+            grey[i] = cv2.cvtColor((seq[i].rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
+        return grey[i]
+
+    out = []
+    for d in gaps:
+        gt_med, est_med, fit_med = [], [], []
+        for i in range(0, len(seq) - d, stride):
+            j = i + d
+            if i not in est_c2w or j not in est_c2w:
+                continue
+            m = consistent_matches(image(i), image(j), sift)
+            if m is None:
+                continue
+            xi, xj, F_fit = m
+            fit_med.append(float(np.median(sampson_distance(F_fit, xi, xj))))
+            for poses, acc in ((seq.gt_poses, gt_med), (est_c2w, est_med)):
+                F = fundamental(inv_se3(poses[i]), inv_se3(poses[j]), K)
+                acc.append(float(np.median(sampson_distance(F, xi, xj))))
+        g, e = np.array(gt_med), np.array(est_med)
+        out.append({"gap_frames": d, "pairs": len(g), "sampson_px_gt": float(np.median(g)) if len(g) else None,
+                    "sampson_px_est": float(np.median(e)) if len(e) else None,
+                    "sampson_px_fit": float(np.median(fit_med)) if fit_med else None,
+                    "est_lower_share": float((e < g).mean()) if len(g) else None})
+    return out
+
+
+def _c2w(tum: np.ndarray) -> np.ndarray:
+    """[4,4] camera-to-world from a TUM row's tx ty tz qx qy qz qw."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(tum[3:7]).as_matrix()
+    T[:3, 3] = tum[:3]
+    return T
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--trajectory", type=Path, default=None, help="a segs.track trajectory.txt (default: track first)")
     p.add_argument("--root", type=Path, default=SEVEN_SCENES, help="the 7-Scenes folder the trajectory was tracked on")
     p.add_argument("--offsets", type=float, nargs="+", default=[-1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0])
+    p.add_argument("--epipolar", type=int, nargs="*", default=[], help="frame gaps of the epipolar test (none: skipped)")
+    p.add_argument("--stride", type=int, default=20, help="epipolar test: a pair starts every this many frames")
     p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "ate_diagnostics.json")
     args = p.parse_args()
     if not args.root.is_dir():
@@ -105,12 +185,19 @@ def main() -> None:
     if not args.trajectory.is_file():
         raise SystemExit(f"ate_diagnostics: no trajectory file at {args.trajectory}")
     res = diagnose(args.trajectory, args.root, args.offsets)
+    if args.epipolar:
+        res["epipolar"] = epipolar(args.trajectory, args.root, args.epipolar, args.stride)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1))
     print(f"ATE with the reader's lever arm {res['reader_lever_cm']} cm: {res['ate_cm_reader']:.2f} cm; "
           f"without: {res['ate_cm_no_lever']:.2f} cm; lever arm fitted ({res['fitted_lever_cm']} cm): "
           f"{res['ate_cm_fitted_lever']:.2f} cm")
     print("time offset (frames) -> ATE: " + ", ".join(f"{o['frames']:+g}: {o['ate_cm']:.2f} cm" for o in res["time_offsets"]))
+    for e in res.get("epipolar", []):
+        print(f"pairs {e['gap_frames']} frames apart ({e['pairs']}): median Sampson distance of consistent SIFT "
+              f"matches {e['sampson_px_gt']:.3f} px under the ground truth, {e['sampson_px_est']:.3f} px under the "
+              f"estimate (lower in {100 * e['est_lower_share']:.0f} % of pairs), {e['sampson_px_fit']:.3f} px under "
+              "their own RANSAC fundamental matrix")
 
 
 if __name__ == "__main__":

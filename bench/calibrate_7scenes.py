@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from segs.data.seven_scenes import COLOR_INTRINSICS, SevenScenesSequence
+from segs.slam.geometry import fundamental, sampson_distance
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPTH_K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])  # the published (depth) intrinsics
@@ -55,13 +56,8 @@ def epipolar_pairs(seq, step: int = 40, gap: int = 10) -> list[tuple[np.ndarray,
 
 def sampson(f: float, cx: float, cy: float, xi: np.ndarray, xj: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Sampson distance [N] (px) of matches xi -> xj under relative pose T and pinhole (f, f, cx, cy)."""
-    Ki = np.linalg.inv(np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]]))
-    t = T[:3, 3]
-    F = Ki.T @ np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ T[:3, :3] @ Ki
-    h1, h2 = np.c_[xi, np.ones(len(xi))], np.c_[xj, np.ones(len(xj))]
-    l2, l1 = h1 @ F.T, h2 @ F
-    num = (h2 * l2).sum(1) ** 2
-    return np.sqrt(num / (l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2))
+    K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+    return sampson_distance(fundamental(np.eye(4), T, K), xi, xj)
 
 
 def focal_search(pairs, focals) -> dict[float, float]:

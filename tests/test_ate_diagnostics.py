@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -64,3 +65,30 @@ def test_time_offset_found(tmp_path):
     assert by[0.5] == pytest.approx(0.0, abs=1e-6)
     assert by[0.0] > by[0.5] and by[-0.5] > by[0.0]
     assert res["ate_cm_reader"] == pytest.approx(by[0.0])
+
+
+def test_epipolar_test_prefers_the_true_relative_pose():
+    """Consistent SIFT matches of two synthetic frames (exact poses) sit on the true pose's epipolar
+    lines (sub-pixel Sampson distance) and off those of a pose rotated by half a degree."""
+    from segs.data.synthetic import SyntheticSequence
+    from segs.slam.geometry import fundamental, inv_se3, sampson_distance
+
+    bench = _bench()
+    seq = SyntheticSequence(sensor="rgbd", n_frames=60, width=320, height=240)
+    grey = [cv2.cvtColor((seq[i].rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY) for i in (0, 2)]
+    m = bench.consistent_matches(grey[0], grey[1], cv2.SIFT_create())
+    assert m is not None
+    xi, xj, F_fit = m
+    w2c0, w2c2 = inv_se3(seq.gt_poses[0]), inv_se3(seq.gt_poses[2])
+    true = np.median(sampson_distance(fundamental(w2c0, w2c2, seq.camera.K), xi, xj))
+    turned = w2c2.copy()
+    turned[:3, :3] = Rotation.from_euler("y", 0.5, degrees=True).as_matrix() @ w2c2[:3, :3]
+    off = np.median(sampson_distance(fundamental(w2c0, turned, seq.camera.K), xi, xj))
+    fit = np.median(sampson_distance(F_fit, xi, xj))
+    assert true < 0.5 and off > 2 * true and fit <= 1.0
+
+
+def test_c2w_from_tum_row():
+    bench = _bench()
+    T = bench._c2w(np.array([1.0, 2.0, 3.0, 0.0, 0.0, np.sin(0.25), np.cos(0.25)]))
+    assert np.allclose(T[:3, 3], [1, 2, 3]) and np.isclose(Rotation.from_matrix(T[:3, :3]).magnitude(), 0.5)

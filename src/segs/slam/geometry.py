@@ -101,6 +101,15 @@ def fundamental(w2c1: np.ndarray, w2c2: np.ndarray, K: np.ndarray) -> np.ndarray
     return Ki.T @ E @ Ki
 
 
+def sampson_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Sampson distance [N] (pixels) of pixel matches x1 -> x2 [N,2] under F [3,3] (x2^T F x1 = 0):
+    the first-order geometric distance of the pair to the epipolar constraint."""
+    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
+    l2, l1 = h1 @ F.T, h2 @ F  # epipolar lines in image 2, and in image 1
+    num = (h2 * l2).sum(1) ** 2
+    return np.sqrt(num / (l2[:, 0] ** 2 + l2[:, 1] ** 2 + l1[:, 0] ** 2 + l1[:, 1] ** 2))
+
+
 def triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Linear triangulation (cv2) of pixel pairs x1, x2 [N,2] with 3x4 projections -> [N,3]."""
     X = cv2.triangulatePoints(P1, P2, x1.T.astype(np.float64), x2.T.astype(np.float64))
