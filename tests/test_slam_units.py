@@ -303,7 +303,8 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
         OrbFrontend(cam, "rgbd", tracking={"no_such_key": 1})
     with pytest.raises(ConfigError):
         OrbFrontend(cam, "fisheye")
-    for key, value in (("ba_iterations", (0, 1)), ("ba_iterations", (4, -1)), ("ba_min_gain", 1.5), ("ba_window", 0),
+    for key, value in (("ba_iterations", (0, 1)), ("ba_iterations", (4, -1)), ("ba_iterations_rgbd", (0, 0)),
+                       ("ba_min_gain", 1.5), ("ba_window", 0),
                        ("triangulate_node_level", -1), ("triangulate_node_level", 9)):
         with pytest.raises(ConfigError, match=f"slam.mapping.{key}"):
             OrbFrontend(cam, "rgbd", mapping={key: value})

@@ -103,7 +103,8 @@ class MappingConfig:
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
     ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 10  # keyframes held fixed around the window
-    ba_iterations: tuple = (4, 1)  # LM iterations before / after removing outliers (0: one pass)
+    ba_iterations: tuple = (4, 1)  # LM iterations before / after removing outliers (0: one pass); mono, stereo
+    ba_iterations_rgbd: tuple = (1, 1)  # the same for RGB-D (points start at their measured depth)
     ba_min_gain: float = 0.01  # the first pass stops after an iteration gaining less than this fraction of the cost
     cull_points: bool = True
     min_found_ratio: float = 0.25
@@ -119,9 +120,10 @@ class MappingConfig:
     def problems(self) -> list[tuple[str, str]]:
         """(key, what is wrong) for values local BA cannot run with."""
         out = []
-        its = tuple(self.ba_iterations)
-        if len(its) not in (1, 2) or not all(isinstance(i, int) and i >= 0 for i in its) or its[0] < 1:
-            out.append(("ba_iterations", f"[first, second] LM iterations, first >= 1, second >= 0; got {list(its)}"))
+        for key in ("ba_iterations", "ba_iterations_rgbd"):
+            its = tuple(getattr(self, key))
+            if len(its) not in (1, 2) or not all(isinstance(i, int) and i >= 0 for i in its) or its[0] < 1:
+                out.append((key, f"[first, second] LM iterations, first >= 1, second >= 0; got {list(its)}"))
         if not 0.0 <= self.ba_min_gain < 1.0:
             out.append(("ba_min_gain", f"a fraction of the cost in [0, 1); got {self.ba_min_gain}"))
         if self.ba_window < 1:

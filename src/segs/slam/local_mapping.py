@@ -320,7 +320,8 @@ class LocalMapper(StateFields):
             if kf.kf_id not in m.kfs:
                 return
             window = [kf.kf_id] + [k for k in kf.covisible(self.cfg.ba_window - 1) if k in m.kfs]
-        self.run_ba(window, self.cfg.ba_fixed_max, self.cfg.ba_iterations, min_gain=self.cfg.ba_min_gain)
+        its = self.cfg.ba_iterations_rgbd if self.setup.sensor == "rgbd" else self.cfg.ba_iterations
+        self.run_ba(window, self.cfg.ba_fixed_max, its, min_gain=self.cfg.ba_min_gain)
 
     def global_ba(self, kf_ids: list[int] | None = None, iterations: int = 10, fix_scale: bool = True) -> None:
         """BA of kf_ids (default: all keyframes) with the origin fixed; fix_scale: see run_ba."""
