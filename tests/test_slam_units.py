@@ -319,6 +319,24 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
         assert default == from_yaml, f"conf/slam/orb.yaml {group} differs from segs.slam.config defaults"
 
 
+@pytest.mark.parametrize("sensor", ["rgbd", "stereo"])
+def test_local_ba_iterations_follow_the_sensor(sensor, monkeypatch):
+    """RGB-D local BA runs mapping.ba_iterations_rgbd, the other sensors mapping.ba_iterations."""
+    seq = SyntheticSequence(sensor=sensor, n_frames=10, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
+    seen = []
+    original = BundleAdjuster.run_two_pass
+
+    def spy(self, poses, fixed, points, obs, iterations, min_gain=1e-5):
+        seen.append(tuple(iterations))
+        return original(self, poses, fixed, points, obs, iterations, min_gain)
+
+    monkeypatch.setattr(BundleAdjuster, "run_two_pass", spy)
+    fe = OrbFrontend(seq.camera, sensor, mapping={"ba_iterations": (3, 2), "ba_iterations_rgbd": (2, 0)})
+    run_sequence(fe, seq)
+    assert len(seen) >= 2
+    assert set(seen) == ({(2, 0)} if sensor == "rgbd" else {(3, 2)})
+
+
 def test_triangulation_under_vocabulary_nodes_tracks_and_keeps_words():
     seq = SyntheticSequence(sensor="rgbd", n_frames=16, width=320, height=240, trajectory="orbit", speed=0.2, seed=0)
     fe = OrbFrontend(seq.camera, "rgbd", mapping={"triangulate_node_level": 1})
