@@ -117,6 +117,75 @@ def test_keypoint_grid_query_equals_brute_force():
     assert got == want
 
 
+def _grid_frame(rng, n=600, dup_desc=False):
+    """A SlamFrame-like record (kp, grid, points, ur) with random keypoints, some taken, some with
+    depth; dup_desc: few distinct descriptors, so that distance ties are common."""
+    from types import SimpleNamespace
+
+    from segs.slam.features import Keypoints
+
+    uv = rng.uniform([0, 0], [320, 240], (n, 2))
+    pool = rng.integers(0, 256, (12 if dup_desc else n, 32), dtype=np.uint8)
+    desc = np.ascontiguousarray(pool[rng.integers(0, len(pool), n)])
+    kp = Keypoints(uv, rng.integers(0, 8, n), rng.uniform(0, 360, n).astype(np.float32),
+                   np.ones(n, np.float32), desc)
+    points = np.where(rng.random(n) < 0.2, rng.integers(0, 50, n), -1)
+    ur = np.where(rng.random(n) < 0.6, uv[:, 0] - rng.uniform(1, 30, n), -1.0)
+    return SimpleNamespace(kp=kp, grid=KeypointGrid(uv, 320, 240, cell=16), points=points, ur=ur)
+
+
+@pytest.mark.parametrize("dup_desc", [False, True])
+@pytest.mark.parametrize("stereo", [False, True])
+def test_native_projection_search_equals_numpy(dup_desc, stereo):
+    """The C++ kernel (segs.slam.native) returns what the numpy pipeline returns, ties included,
+    with queries on cell borders and outside the image."""
+    from segs.slam.matching import nearest_two_in_radius
+    from segs.slam.native import kernels
+
+    if kernels() is None:
+        pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
+    rng = np.random.default_rng(3 + dup_desc + 2 * stereo)
+    fr = _grid_frame(rng, dup_desc=dup_desc)
+    m = 400
+    uv = rng.uniform([-20, -20], [340, 260], (m, 2))
+    uv[:40] = np.round(uv[:40] / 16) * 16  # exactly on cell borders
+    desc = np.ascontiguousarray(fr.kp.desc[rng.integers(0, len(fr.kp), m)] ^ (rng.random((m, 32)) < 0.05).astype(np.uint8))
+    radius = rng.uniform(0, 48, m)
+    radius[:40] = 16.0
+    lvl = rng.integers(0, 8, m)
+    ur = uv[:, 0] - rng.uniform(1, 30, m) if stereo else None
+    for only_free in (True, False):
+        a = nearest_two_in_radius(fr, uv, desc, radius, lvl - 1, lvl + 1, ur, only_free, native=True)
+        b = nearest_two_in_radius(fr, uv, desc, radius, lvl - 1, lvl + 1, ur, only_free, native=False)
+        assert len(a[0]) > 100
+        for x, y in zip(a, b):
+            assert np.array_equal(x, y)
+    if dup_desc:  # ties were there to be broken
+        assert (a[2] == a[3]).sum() > 10
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_native_pose_solver_equals_numpy(stereo):
+    from segs.slam.native import kernels
+    from segs.slam.optimize import _solve_pose
+
+    if kernels() is None:
+        pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
+    rng = np.random.default_rng(4)
+    P = rng.uniform([-2, -1.5, 2], [2, 1.5, 6], (150, 3))
+    gt = _pose([0.05, -0.1, 0.02], [0.1, -0.05, 0.2])
+    uv, z = _project(gt, P)
+    uv += rng.normal(0, 1.0, uv.shape)
+    ur = np.where(rng.random(150) < 0.7, uv[:, 0] - 30.0 / z, -1.0) if stereo else None
+    w = rng.uniform(0.4, 1.0, 150)
+    args = (P, uv, ur, w, K, 30.0, ur >= 0 if stereo else None, w * 0.8)
+    start = _pose([0.07, -0.06, 0.0], [0.16, -0.02, 0.12])
+    a = _solve_pose(start, args, 20, native=True)
+    b = _solve_pose(start, args, 20, native=False)
+    assert np.abs(a - b).max() < 1e-9
+    assert np.abs(a - start).max() > 1e-3  # it moved
+
+
 def test_refine_pose_is_robust_to_outliers():
     rng = np.random.default_rng(1)
     P = rng.uniform([-2, -1.5, 2], [2, 1.5, 6], (300, 3))

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from segs.slam.features import hamming_pairs
+from segs.slam.native import kernels
 
 TH_HIGH = 100
 TH_LOW = 50
@@ -77,6 +78,39 @@ def search_projection(frame, uv: np.ndarray, desc: np.ndarray, level: np.ndarray
     orientation of the source keypoints for the rotation-consistency check, or None.
     Returns (query indices [Q], keypoint indices [Q]).
     """
+    q, k, d1, d2 = nearest_two_in_radius(frame, uv, desc, radius, lo, hi, ur, only_free)
+    # ORB-SLAM applies the ratio only when best and second are on the same level; here always
+    # (stricter), a missing second candidate passes
+    ok = (d1 <= max_dist) & (d1 <= ratio * d2)
+    q, k, d1 = q[ok], k[ok], d1[ok]
+    keep = unique_targets(q, k, d1)
+    q, k = q[keep], k[keep]
+    if angle is not None and len(q):
+        keep = rotation_consistent(angle[q], frame.kp.angle[k])
+        q, k = q[keep], k[keep]
+    return q, k
+
+
+def nearest_two_in_radius(frame, uv: np.ndarray, desc: np.ndarray, radius: np.ndarray, lo: np.ndarray,
+                          hi: np.ndarray, ur: np.ndarray | None, only_free: bool,
+                          native: bool = True) -> tuple[np.ndarray, ...]:
+    """Per query, the nearest and second-nearest keypoint (Hamming) among the frame's keypoints
+    within `radius` pixels of uv whose octave lies in [lo, hi] (free ones only if only_free; with
+    ur, a keypoint with depth must lie within the radius of ur in the right image too).
+
+    Shapes as in search_projection -> (queries [Q] ascending, keypoint [Q], distance [Q] int64,
+    second distance [Q] float64, inf if none). native: the C++ kernel where it is built (same
+    results), else numpy.
+    """
+    ext = kernels() if native else None
+    if ext is not None and len(uv) and len(frame.kp):
+        g = frame.grid
+        i64 = np.int64
+        return ext.best_two_in_radius(
+            g.start, g.order, frame.kp.uv, frame.kp.octave, frame.kp.desc,
+            frame.points if only_free else np.zeros(0, i64), frame.ur if ur is not None else np.zeros(0),
+            g.cell, g.nx, g.ny, uv, np.broadcast_to(np.asarray(radius, float), (len(uv),)),
+            np.asarray(lo, i64), np.asarray(hi, i64), ur if ur is not None else np.zeros(0), desc)
     qi, ki = frame.grid.query(uv, radius)
     oct_ = frame.kp.octave[ki]
     ok = (oct_ >= lo[qi]) & (oct_ <= hi[qi])
@@ -88,16 +122,7 @@ def search_projection(frame, uv: np.ndarray, desc: np.ndarray, level: np.ndarray
     qi, ki = qi[ok], ki[ok]
     d = hamming_pairs(desc, qi, frame.kp.desc, ki)
     q, k, d1, d2, _ = best_two(qi, ki, d)
-    # ORB-SLAM applies the ratio only when best and second are on the same level; here always
-    # (stricter), a missing second candidate passes
-    ok = (d1 <= max_dist) & (d1 <= ratio * d2)
-    q, k, d1 = q[ok], k[ok], d1[ok]
-    keep = unique_targets(q, k, d1)
-    q, k = q[keep], k[keep]
-    if angle is not None and len(q):
-        keep = rotation_consistent(angle[q], frame.kp.angle[k])
-        q, k = q[keep], k[keep]
-    return q, k
+    return q, k, d1, d2
 
 
 def match_descriptors(da: np.ndarray, db: np.ndarray, ratio: float = 0.75,

@@ -14,6 +14,7 @@ import gtsam
 import numpy as np
 
 from segs.slam.geometry import inv_se3, orthonormalize, rt_to_w2c, transform
+from segs.slam.native import kernels
 
 # chi-square 95 % quantiles (statistics constants, not parameters): a reprojection error of 2 dof
 # (u, v) and of 3 dof (u, v, right u), ORB-SLAM's outlier thresholds
@@ -88,9 +89,16 @@ def _pose_system(w2c: np.ndarray, P, uv, ur, w, K, bf, stereo, w_ur) -> tuple[np
     return r, J
 
 
-def _solve_pose(w2c: np.ndarray, args: tuple, evaluations: int) -> np.ndarray:
+def _solve_pose(w2c: np.ndarray, args: tuple, evaluations: int, native: bool = True) -> np.ndarray:
     """Levenberg-Marquardt (Marquardt's diagonal damping) on a w2c [4,4] with _pose_system(args);
-    at most `evaluations` residual evaluations, stopping when the cost or the step stalls."""
+    at most `evaluations` residual evaluations, stopping when the cost or the step stalls.
+    native: the C++ kernel (segs.slam.native) where it is built, the same algorithm."""
+    ext = kernels() if native else None
+    if ext is not None:
+        P, uv, ur, w, K, bf, stereo, w_ur = args
+        none_f, none_b = np.zeros(0), np.zeros(0, bool)
+        return ext.solve_pose(w2c, P, uv, none_f if ur is None else ur, w, K, float(bf),
+                              none_b if stereo is None else stereo, none_f if w_ur is None else w_ur, int(evaluations))
     r, J = _pose_system(w2c, *args)
     cost, lam = float(r @ r), 1e-4
     for _ in range(evaluations - 1):
