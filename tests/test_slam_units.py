@@ -186,6 +186,39 @@ def test_native_pose_solver_equals_numpy(stereo):
     assert np.abs(a - start).max() > 1e-3  # it moved
 
 
+def test_native_map_bookkeeping_equals_python():
+    """Keyframe culling's redundancy count and the point-geometry gather give the Python loops'
+    results on a real map (synthetic monocular orbit: many observers per point), including after
+    a keyframe is removed."""
+    from segs.slam.local_mapping import redundant_points
+    from segs.slam.native import kernels
+
+    if kernels() is None:
+        pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
+    seq = SyntheticSequence(sensor="mono", n_frames=40, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
+    fe = OrbFrontend(seq.camera, "mono")
+    run_sequence(fe, seq)
+    m = fe.map
+    kfs = sorted(m.kfs)
+    assert len(kfs) >= 5
+    m.set_kf_bad(m.kfs[kfs[2]])  # observations of a removed keyframe must not count
+    octaves = {k: kf.kp.octave for k, kf in m.kfs.items()}
+    counted = 0
+    for k in sorted(m.kfs)[1:]:
+        idx, pids = m.kf_point_ids(m.kfs[k])
+        lvl = m.kfs[k].kp.octave[idx] + 1
+        for th in (1, 2, 3):
+            a = redundant_points(m.obs, pids, lvl, k, octaves, th, native=True)
+            assert a == redundant_points(m.obs, pids, lvl, k, octaves, th, native=False)
+            counted += a
+    assert counted > 0
+    pids = np.flatnonzero(m.valid)
+    m.ref_kf[pids[::7]] = kfs[2]  # points whose reference keyframe is gone
+    for x, y in zip(m._observers(pids, native=True), m._observers(pids, native=False)):
+        assert np.array_equal(x, y)
+    assert (m._observers(pids)[2] == -1).sum() >= len(pids[::7])
+
+
 def test_refine_pose_is_robust_to_outliers():
     rng = np.random.default_rng(1)
     P = rng.uniform([-2, -1.5, 2], [2, 1.5, 6], (300, 3))

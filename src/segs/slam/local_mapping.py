@@ -16,6 +16,7 @@ import numpy as np
 from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
 from segs.slam.config import MappingConfig, MatchingConfig
 from segs.slam.map import KeyFrame, Map
+from segs.slam.native import kernels
 from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
 from segs.slam.features import hamming_pairs
 from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, CONVERGED_GAIN, BundleAdjuster, Observations, reproj_chi2
@@ -457,6 +458,7 @@ class LocalMapper(StateFields):
         of its (close) points are seen by at least 3 other keyframes at the same or a finer scale."""
         m, su = self.map, self.setup
         th_obs = self.cfg.redundant_observers
+        octaves = None  # keyframe id -> its keypoints' octaves, built when first needed
         for n in kf.covisible(self.cfg.cull_window):
             k = m.kfs.get(n)
             if k is None or n == m.origin_kf or k.protected or n == kf.kf_id:
@@ -468,19 +470,31 @@ class LocalMapper(StateFields):
             many = m.n_obs[pids] > th_obs  # points seen often enough to be redundant at all
             if len(pids) == 0 or many.sum() <= self.cfg.redundancy * len(pids):
                 continue
-            redundant = 0
-            for i, p in zip(idx[many].tolist(), pids[many].tolist()):
-                lvl = k.kp.octave[i] + 1
-                cnt = 0
-                for k2, j in m.obs[p].items():
-                    if k2 != n:
-                        kk = m.kfs.get(k2)
-                        if kk is not None and kk.kp.octave[j] <= lvl:
-                            cnt += 1
-                            if cnt >= th_obs:
-                                redundant += 1
-                                break
+            if octaves is None:
+                octaves = {kid: kk.kp.octave for kid, kk in m.kfs.items()}
+            redundant = redundant_points(m.obs, pids[many], k.kp.octave[idx[many]] + 1, n, octaves, th_obs)
             if redundant > self.cfg.redundancy * len(pids):
                 m.set_kf_bad(k)
+                octaves.pop(n, None)
                 self.kfdb.erase(n)
                 self.log(f"culled keyframe {n}")
+
+
+def redundant_points(obs: list[dict[int, int]], pids: np.ndarray, level: np.ndarray, exclude: int,
+                     octaves: dict[int, np.ndarray], th_obs: int, native: bool = True) -> int:
+    """How many of the points pids [P] are seen by at least th_obs keyframes other than `exclude`
+    (among the keys of octaves, the map's keyframes -> their keypoints' octaves) at an octave
+    <= level [P] (ORB-SLAM's KeyFrameCulling count). native: the C++ loop where it is built."""
+    ext = kernels() if native else None
+    if ext is not None:
+        return int(ext.redundant_points([obs[p] for p in pids.tolist()], level, exclude, octaves, th_obs))
+    redundant = 0
+    for p, lvl in zip(pids.tolist(), level.tolist()):
+        cnt = 0
+        for k2, j in obs[p].items():
+            if k2 != exclude and k2 in octaves and octaves[k2][j] <= lvl:
+                cnt += 1
+                if cnt >= th_obs:
+                    redundant += 1
+                    break
+    return redundant

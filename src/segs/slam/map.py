@@ -17,6 +17,7 @@ import numpy as np
 from segs.slam.features import Keypoints
 from segs.slam.frame import KeypointGrid, SlamFrame
 from segs.slam.geometry import cam_center, inv_se3
+from segs.slam.native import kernels
 
 
 class KeyFrame:
@@ -220,16 +221,9 @@ class Map:
         pids = np.asarray(pids, np.int64)
         if len(pids) == 0:
             return
-        owner, kfid = [], []
-        for j, pid in enumerate(pids.tolist()):
-            for k in self.obs[pid]:
-                if k in self.kfs:
-                    owner.append(j)
-                    kfid.append(k)
-        if not owner:
+        owner, kfid, refs = self._observers(pids)
+        if not len(owner):
             return
-        owner = np.asarray(owner, np.int64)
-        kfid = np.asarray(kfid, np.int64)
         ids, inv = np.unique(kfid, return_inverse=True)
         centers = np.stack([self.kfs[int(k)].center for k in ids])
         v = self.pos[pids][owner] - centers[inv]
@@ -240,14 +234,6 @@ class Map:
         has = norm > 0
         self.normal[pids[has]] = n[has] / norm[has, None]
         # scale range from the reference keyframe's observation
-        refs = self.ref_kf[pids]
-        for j, (pid, r) in enumerate(zip(pids.tolist(), refs.tolist())):
-            ref = self.kfs.get(r)
-            idx = self.obs[pid].get(r) if ref is not None else None
-            if idx is None:
-                refs[j] = -1
-                continue
-            refs[j] = ref.kp.octave[idx]
         ok = refs >= 0
         if ok.any():
             sel = pids[ok]
@@ -255,6 +241,27 @@ class Map:
             dist = np.linalg.norm(self.pos[sel] - cref, axis=1)
             self.dmax[sel] = dist * self.scales[refs[ok]]
             self.dmin[sel] = self.dmax[sel] / self.scales[-1]
+
+    def _observers(self, pids: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Observations of points pids [P] by keyframes of the map -> (row in pids [O], keyframe
+        id [O]) in dict order, and per point the octave of its reference keyframe's observation
+        [P] (-1: that keyframe is gone or does not see it). native: the C++ loop where built."""
+        ext = kernels() if native else None
+        if ext is not None:
+            octaves = {k: kf.kp.octave for k, kf in self.kfs.items()}
+            return ext.gather_observers([self.obs[p] for p in pids.tolist()], octaves, self.ref_kf[pids])
+        owner, kfid = [], []
+        for j, pid in enumerate(pids.tolist()):
+            for k in self.obs[pid]:
+                if k in self.kfs:
+                    owner.append(j)
+                    kfid.append(k)
+        refs = self.ref_kf[pids].copy()
+        for j, (pid, r) in enumerate(zip(pids.tolist(), refs.tolist())):
+            ref = self.kfs.get(r)
+            idx = self.obs[pid].get(r) if ref is not None else None
+            refs[j] = -1 if idx is None else ref.kp.octave[idx]
+        return np.asarray(owner, np.int64), np.asarray(kfid, np.int64), refs
 
     def update_descriptors(self, pids: np.ndarray) -> None:
         """Distinctive descriptor: the observation's descriptor with the least median distance.

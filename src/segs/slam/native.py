@@ -15,7 +15,7 @@ from types import ModuleType
 
 from segs.raster._build import BuildError, KernelBuild
 
-MATCH = KernelBuild("segs_slam_cpu", Path(__file__).parent / "csrc", ("match.cpp",), (), "SEGS_SLAM_NO_CPU",
+MATCH = KernelBuild("segs_slam_cpu", Path(__file__).parent / "csrc", ("match.cpp", "map.cpp"), (), "SEGS_SLAM_NO_CPU",
                     fp_contract="off")
 _warned = False
 

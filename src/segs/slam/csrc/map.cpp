@@ -1,0 +1,109 @@
+// Map bookkeeping of local mapping in C++: loops over the map's observation dictionaries
+// (point -> {keyframe id: keypoint index}) that cost tens of milliseconds per keyframe as Python
+// bytecode. Each function reads the dictionaries through the CPython API under the GIL and
+// returns what the Python loop it replaces computed (segs.slam.local_mapping / segs.slam.map).
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <cstdint>
+#include <stdexcept>
+#include <unordered_map>
+#include <vector>
+
+namespace py = pybind11;
+
+namespace {
+
+using i64 = std::int64_t;
+template <typename T>
+using Arr = py::array_t<T, py::array::c_style | py::array::forcecast>;
+
+i64 as_int(PyObject* o) {
+  const long long v = PyLong_AsLongLong(o);
+  if (v == -1 && PyErr_Occurred()) throw py::error_already_set();
+  return v;
+}
+
+// keyframe id -> its keypoints' octaves [N] (int64), from a dict {kf id: array}. The arrays stay
+// referenced by the dict for the duration of the call.
+std::unordered_map<i64, const i64*> octave_table(const py::dict& octaves, std::vector<py::object>& keep) {
+  std::unordered_map<i64, const i64*> out;
+  out.reserve(octaves.size() * 2);
+  for (auto item : octaves) {
+    auto a = Arr<i64>::ensure(item.second);
+    if (!a) throw std::invalid_argument("octaves: int64 arrays expected");
+    out.emplace(item.first.cast<i64>(), a.data());
+    keep.push_back(a);
+  }
+  return out;
+}
+
+// ORB-SLAM's keyframe redundancy count (LocalMapping::KeyFrameCulling): of the points obs[i]
+// (list of dicts {kf id: keypoint index}), how many are seen by at least `th_obs` keyframes other
+// than `exclude` that are in `octaves` (the map's keyframes) at an octave <= level[i].
+i64 redundant_points(const py::list& obs, Arr<i64> level, i64 exclude, const py::dict& octaves, i64 th_obs) {
+  std::vector<py::object> keep;
+  const auto oct = octave_table(octaves, keep);
+  const i64* lvl = level.data();
+  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+  if (level.size() != n) throw std::invalid_argument("level: one entry per point expected");
+  i64 redundant = 0;
+  for (py::ssize_t i = 0; i < n; ++i) {
+    PyObject* d = PyList_GET_ITEM(obs.ptr(), i);
+    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    PyObject *key, *value;
+    Py_ssize_t pos = 0;
+    i64 cnt = 0;
+    while (PyDict_Next(d, &pos, &key, &value)) {
+      const i64 k = as_int(key);
+      if (k == exclude) continue;
+      auto it = oct.find(k);
+      if (it == oct.end()) continue;
+      if (it->second[as_int(value)] <= lvl[i] && ++cnt >= th_obs) {
+        ++redundant;
+        break;
+      }
+    }
+  }
+  return redundant;
+}
+
+// Flattens observations for Map.update_geometry: for point row j (obs[j]) every observer k that is
+// a key of `alive` -> (owner [O] = j, kf [O] = k), in dict order; and per row the octave of its
+// observation by ref[j] (-1 where ref[j] is not alive or does not observe the point).
+py::tuple gather_observers(const py::list& obs, const py::dict& octaves, Arr<i64> ref) {
+  std::vector<py::object> keep;
+  const auto oct = octave_table(octaves, keep);
+  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+  if (ref.size() != n) throw std::invalid_argument("ref: one entry per point expected");
+  const i64* r = ref.data();
+  std::vector<i64> owner, kf;
+  py::array_t<i64> ref_oct(n);
+  i64* ro = ref_oct.mutable_data();
+  for (py::ssize_t j = 0; j < n; ++j) {
+    PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
+    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    PyObject *key, *value;
+    Py_ssize_t pos = 0;
+    ro[j] = -1;
+    while (PyDict_Next(d, &pos, &key, &value)) {
+      const i64 k = as_int(key);
+      auto it = oct.find(k);
+      if (it == oct.end()) continue;
+      owner.push_back(j);
+      kf.push_back(k);
+      if (k == r[j]) ro[j] = it->second[as_int(value)];
+    }
+  }
+  py::array_t<i64> a(static_cast<py::ssize_t>(owner.size())), b(static_cast<py::ssize_t>(kf.size()));
+  std::copy(owner.begin(), owner.end(), a.mutable_data());
+  std::copy(kf.begin(), kf.end(), b.mutable_data());
+  return py::make_tuple(a, b, ref_oct);
+}
+
+}  // namespace
+
+void register_map_kernels(py::module_& m) {
+  m.def("redundant_points", &redundant_points);
+  m.def("gather_observers", &gather_observers);
+}
