@@ -217,6 +217,12 @@ def test_native_map_bookkeeping_equals_python():
     for x, y in zip(m._observers(pids, native=True), m._observers(pids, native=False)):
         assert np.array_equal(x, y)
     assert (m._observers(pids)[2] == -1).sum() >= len(pids[::7])
+    before = m.desc.copy()
+    m.update_descriptors(pids, native=False)
+    want = m.desc.copy()
+    m.desc[:] = before
+    m.update_descriptors(pids, native=True)
+    assert np.array_equal(m.desc, want) and not np.array_equal(want[pids], before[pids])
 
 
 def test_refine_pose_is_robust_to_outliers():

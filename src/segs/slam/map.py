@@ -263,14 +263,21 @@ class Map:
             refs[j] = -1 if idx is None else ref.kp.octave[idx]
         return np.asarray(owner, np.int64), np.asarray(kfid, np.int64), refs
 
-    def update_descriptors(self, pids: np.ndarray) -> None:
+    def update_descriptors(self, pids: np.ndarray, native: bool = True) -> None:
         """Distinctive descriptor: the observation's descriptor with the least median distance.
 
-        The observations' descriptors are gathered per keyframe, then the distances are computed
-        per group of points with the same number of observations (vectorized).
+        The C++ kernel (segs.slam.native) where it is built; otherwise the observations'
+        descriptors are gathered per keyframe and the distances computed per group of points with
+        the same number of observations (vectorized numpy). Same result either way.
         """
         pids = np.asarray(pids, np.int64)
         obs = self.obs
+        ext = kernels() if native else None
+        if ext is not None:
+            descs = {k: kf.kp.desc for k, kf in self.kfs.items()}
+            rows, desc = ext.distinctive_descriptors([obs[p] for p in pids.tolist()], descs)
+            self.desc[pids[rows]] = desc
+            return
         counts = np.array([len(obs[p]) for p in pids.tolist()], np.int64)
         owner = np.repeat(np.flatnonzero(counts >= 2), counts[counts >= 2])  # [O] row of pids
         if not len(owner):

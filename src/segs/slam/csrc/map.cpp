@@ -5,6 +5,7 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <stdexcept>
 #include <unordered_map>
@@ -101,9 +102,72 @@ py::tuple gather_observers(const py::list& obs, const py::dict& octaves, Arr<i64
   return py::make_tuple(a, b, ref_oct);
 }
 
+// Map.update_descriptors: per point obs[j], the descriptors of its observations by keyframes in
+// `descs` ({kf id: keypoint descriptors [N,32] uint8}) in dict order; for points with at least two,
+// the one with the least median Hamming distance to the others (ORB-SLAM's
+// ComputeDistinctiveDescriptors; median of an even count = mean of the middle two; the first on
+// ties). -> (rows [R] of the points that have one, descriptors [R,32]).
+py::tuple distinctive_descriptors(const py::list& obs, const py::dict& descs) {
+  std::vector<py::object> keep;
+  std::unordered_map<i64, const std::uint8_t*> table;
+  table.reserve(descs.size() * 2);
+  for (auto item : descs) {
+    auto a = Arr<std::uint8_t>::ensure(item.second);
+    if (!a || a.ndim() != 2 || a.shape(1) != 32) throw std::invalid_argument("descs: uint8 [N,32] arrays expected");
+    table.emplace(item.first.cast<i64>(), a.data());
+    keep.push_back(a);
+  }
+  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+  std::vector<i64> rows;
+  std::vector<std::uint8_t> out;
+  std::vector<const std::uint8_t*> d;
+  std::vector<int> dist, row;
+  for (py::ssize_t j = 0; j < n; ++j) {
+    PyObject* o = PyList_GET_ITEM(obs.ptr(), j);
+    if (!PyDict_Check(o)) throw std::invalid_argument("obs: dicts expected");
+    PyObject *key, *value;
+    Py_ssize_t pos = 0;
+    d.clear();
+    while (PyDict_Next(o, &pos, &key, &value)) {
+      auto it = table.find(as_int(key));
+      if (it != table.end()) d.push_back(it->second + 32 * as_int(value));
+    }
+    const std::size_t m = d.size();
+    if (m < 2) continue;
+    dist.assign(m * m, 0);
+    for (std::size_t a = 0; a < m; ++a)
+      for (std::size_t b = a + 1; b < m; ++b) {
+        const auto* x = reinterpret_cast<const std::uint64_t*>(d[a]);
+        const auto* y = reinterpret_cast<const std::uint64_t*>(d[b]);
+        const int h = __builtin_popcountll(x[0] ^ y[0]) + __builtin_popcountll(x[1] ^ y[1]) +
+                      __builtin_popcountll(x[2] ^ y[2]) + __builtin_popcountll(x[3] ^ y[3]);
+        dist[a * m + b] = dist[b * m + a] = h;
+      }
+    int best_med = 0;
+    std::size_t best = 0;
+    for (std::size_t a = 0; a < m; ++a) {
+      row.assign(dist.begin() + a * m, dist.begin() + (a + 1) * m);
+      std::sort(row.begin(), row.end());
+      const int med = row[(m - 1) / 2] + row[m / 2];
+      if (a == 0 || med < best_med) {
+        best_med = med;
+        best = a;
+      }
+    }
+    rows.push_back(j);
+    out.insert(out.end(), d[best], d[best] + 32);
+  }
+  py::array_t<i64> r(static_cast<py::ssize_t>(rows.size()));
+  std::copy(rows.begin(), rows.end(), r.mutable_data());
+  py::array_t<std::uint8_t> desc({static_cast<py::ssize_t>(rows.size()), static_cast<py::ssize_t>(32)});
+  std::copy(out.begin(), out.end(), desc.mutable_data());
+  return py::make_tuple(r, desc);
+}
+
 }  // namespace
 
 void register_map_kernels(py::module_& m) {
   m.def("redundant_points", &redundant_points);
   m.def("gather_observers", &gather_observers);
+  m.def("distinctive_descriptors", &distinctive_descriptors);
 }
