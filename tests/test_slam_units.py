@@ -154,14 +154,16 @@ def test_native_projection_search_equals_numpy(dup_desc, stereo):
     radius[:40] = 16.0
     lvl = rng.integers(0, 8, m)
     ur = uv[:, 0] - rng.uniform(1, 30, m) if stereo else None
-    for only_free in (True, False):
-        a = nearest_two_in_radius(fr, uv, desc, radius, lvl - 1, lvl + 1, ur, only_free, native=True)
-        b = nearest_two_in_radius(fr, uv, desc, radius, lvl - 1, lvl + 1, ur, only_free, native=False)
-        assert len(a[0]) > 100
+    sigma2 = 1.2 ** (2 * np.arange(8))
+    gates = [None, (rng.uniform(0.5, 4, m), sigma2, None, 40.0), (rng.uniform(0.5, 4, m), sigma2, 0.8, 40.0)]
+    for only_free, gate in ((True, None), (False, None), (False, gates[1]), (True, gates[2])):
+        a = nearest_two_in_radius(fr, uv, desc, radius, lvl - 1, lvl + 1, ur, only_free, gate, native=True)
+        b = nearest_two_in_radius(fr, uv, desc, radius, lvl - 1, lvl + 1, ur, only_free, gate, native=False)
+        assert len(a[0]) > (5 if gate else 100)
         for x, y in zip(a, b):
             assert np.array_equal(x, y)
-    if dup_desc:  # ties were there to be broken
-        assert (a[2] == a[3]).sum() > 10
+        if dup_desc and gate is None:  # ties were there to be broken
+            assert (a[2] == a[3]).sum() > 10
 
 
 @pytest.mark.parametrize("stereo", [False, True])

@@ -17,9 +17,8 @@ from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transf
 from segs.slam.config import MappingConfig, MatchingConfig
 from segs.slam.map import KeyFrame, Map
 from segs.slam.native import kernels
-from segs.slam.matching import TH_LOW, best_two, match_for_triangulation, unique_targets
-from segs.slam.features import hamming_pairs
-from segs.slam.optimize import CHI2_MONO, CHI2_STEREO, CONVERGED_GAIN, BundleAdjuster, Observations, reproj_chi2
+from segs.slam.matching import TH_LOW, match_for_triangulation, nearest_two_in_radius, unique_targets
+from segs.slam.optimize import CONVERGED_GAIN, BundleAdjuster, Observations, reproj_chi2
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
 from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
@@ -295,20 +294,9 @@ class LocalMapper(StateFields):
         sel = np.flatnonzero(ok)
         level = m.predict_level(pids[sel], dist[sel])
         radius = th * su.scales[level]
-        qi, ki = kf.grid.query(uv[sel], radius)
-        o = kf.kp.octave[ki]
-        good = (o >= level[qi] - 1) & (o <= level[qi])
-        if fuse:
-            e2 = ((uv[sel][qi] - kf.kp.uv[ki]) ** 2).sum(1) / su.sigma2[o]
-            st = kf.ur[ki] >= 0
-            zc = pc[sel][qi, 2] / s
-            w_ur = 1.0 / su.sigma2[o] if su.ur_sigma is None else 1.0 / su.ur_sigma ** 2
-            disp = kf.kp.uv[ki, 0] - kf.ur[ki]
-            e2 = e2 + np.where(st, (su.bf / np.maximum(zc, 1e-9) - disp) ** 2, 0) * w_ur
-            good &= e2 < np.where(st, CHI2_STEREO, CHI2_MONO)
-        qi, ki = qi[good], ki[good]
-        d = hamming_pairs(m.desc[pids[sel]], qi, kf.kp.desc, ki)
-        q, k, d1, _, _ = best_two(qi, ki, d)
+        gate = (pc[sel, 2] / s, su.sigma2, su.ur_sigma, su.bf) if fuse else None
+        q, k, d1, _ = nearest_two_in_radius(kf, np.ascontiguousarray(uv[sel]), m.desc[pids[sel]], radius, level - 1,
+                                            level, None, False, gate)
         keep = d1 <= TH_LOW
         q, k, d1 = q[keep], k[keep], d1[keep]
         keep = unique_targets(q, k, d1)

@@ -11,6 +11,7 @@ import numpy as np
 
 from segs.slam.features import hamming_pairs
 from segs.slam.native import kernels
+from segs.slam.optimize import CHI2_MONO, CHI2_STEREO
 
 TH_HIGH = 100
 TH_LOW = 50
@@ -92,25 +93,29 @@ def search_projection(frame, uv: np.ndarray, desc: np.ndarray, level: np.ndarray
 
 
 def nearest_two_in_radius(frame, uv: np.ndarray, desc: np.ndarray, radius: np.ndarray, lo: np.ndarray,
-                          hi: np.ndarray, ur: np.ndarray | None, only_free: bool,
+                          hi: np.ndarray, ur: np.ndarray | None, only_free: bool, gate: tuple | None = None,
                           native: bool = True) -> tuple[np.ndarray, ...]:
     """Per query, the nearest and second-nearest keypoint (Hamming) among the frame's keypoints
     within `radius` pixels of uv whose octave lies in [lo, hi] (free ones only if only_free; with
     ur, a keypoint with depth must lie within the radius of ur in the right image too).
 
+    gate: (z [M] query depths, sigma2 [levels], ur_sigma or None, bf): candidates must also pass
+    the reprojection chi-square test (5.991 / 7.815 with depth) of local mapping's fusion.
     Shapes as in search_projection -> (queries [Q] ascending, keypoint [Q], distance [Q] int64,
     second distance [Q] float64, inf if none). native: the C++ kernel where it is built (same
     results), else numpy.
     """
     ext = kernels() if native else None
     if ext is not None and len(uv) and len(frame.kp):
-        g = frame.grid
-        i64 = np.int64
+        g, i64, none = frame.grid, np.int64, np.zeros(0)
+        z, sigma2, ur_sigma, bf = gate if gate is not None else (none, np.ones(1), None, 0.0)
         return ext.best_two_in_radius(
             g.start, g.order, frame.kp.uv, frame.kp.octave, frame.kp.desc,
-            frame.points if only_free else np.zeros(0, i64), frame.ur if ur is not None else np.zeros(0),
+            frame.points if only_free else np.zeros(0, i64),
+            frame.ur if ur is not None or gate is not None else none,
             g.cell, g.nx, g.ny, uv, np.broadcast_to(np.asarray(radius, float), (len(uv),)),
-            np.asarray(lo, i64), np.asarray(hi, i64), ur if ur is not None else np.zeros(0), desc)
+            np.asarray(lo, i64), np.asarray(hi, i64), ur if ur is not None else none, desc,
+            z, sigma2, 0.0 if ur_sigma is None else 1.0 / ur_sigma ** 2, float(bf), CHI2_MONO, CHI2_STEREO)
     qi, ki = frame.grid.query(uv, radius)
     oct_ = frame.kp.octave[ki]
     ok = (oct_ >= lo[qi]) & (oct_ <= hi[qi])
@@ -119,6 +124,14 @@ def nearest_two_in_radius(frame, uv: np.ndarray, desc: np.ndarray, radius: np.nd
     if ur is not None:
         fur = frame.ur[ki]
         ok &= (fur < 0) | (np.abs(ur[qi] - fur) <= radius[qi])
+    if gate is not None:
+        z, sigma2, ur_sigma, bf = gate
+        e2 = ((uv[qi] - frame.kp.uv[ki]) ** 2).sum(1) / sigma2[oct_]
+        st = frame.ur[ki] >= 0
+        w_ur = 1.0 / sigma2[oct_] if ur_sigma is None else 1.0 / ur_sigma ** 2
+        disp = frame.kp.uv[ki, 0] - frame.ur[ki]
+        e2 = e2 + np.where(st, (bf / np.maximum(z[qi], 1e-9) - disp) ** 2, 0) * w_ur
+        ok &= e2 < np.where(st, CHI2_STEREO, CHI2_MONO)
     qi, ki = qi[ok], ki[ok]
     d = hamming_pairs(desc, qi, frame.kp.desc, ki)
     q, k, d1, d2, _ = best_two(qi, ki, d)

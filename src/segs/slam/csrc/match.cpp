@@ -53,13 +53,19 @@ int hamming32(const std::uint8_t* a, const std::uint8_t* b) {
 // Best and second-best keypoint per query within its radius. Shapes: start [nx*ny+1], order [N],
 // kp_uv [N,2], kp_oct [N], kp_desc [N,32], kp_points [N] (only_free: -1 = free) or empty,
 // kp_ur [N] (-1 = none) or empty, q [M,2], radius [M], lo / hi [M], q_ur [M] or empty,
-// q_desc [M,32]. Returns (queries [Q] ascending, best keypoint [Q], best distance [Q] int64,
+// q_desc [M,32]; gate_z [M] (empty: no gate) with sigma2 [levels], inv_ur_sigma2 (<= 0: the
+// octave's), bf and the chi-square thresholds: keep only candidates whose reprojection error
+// passes (segs.slam.local_mapping's fusion). Returns (queries [Q] ascending, best keypoint [Q], best distance [Q] int64,
 // second distance [Q] float64, inf when the query had one candidate).
 py::tuple best_two_in_radius(Arr<i64> start, Arr<i64> order, Arr<double> kp_uv, Arr<i64> kp_oct,
                              Arr<std::uint8_t> kp_desc, Arr<i64> kp_points, Arr<double> kp_ur,
                              double cell, i64 nx, i64 ny, Arr<double> q, Arr<double> radius,
-                             Arr<i64> lo, Arr<i64> hi, Arr<double> q_ur, Arr<std::uint8_t> q_desc) {
+                             Arr<i64> lo, Arr<i64> hi, Arr<double> q_ur, Arr<std::uint8_t> q_desc,
+                             Arr<double> gate_z, Arr<double> sigma2, double inv_ur_sigma2, double bf,
+                             double chi2_mono, double chi2_stereo) {
   const i64 m = q.shape(0);
+  const double* gz = gate_z.size() ? gate_z.data() : nullptr;
+  const double* sig2 = sigma2.data();
   const i64* st = start.data();
   const i64* ord = order.data();
   const double* uv = kp_uv.data();
@@ -94,6 +100,16 @@ py::tuple best_two_in_radius(Arr<i64> start, Arr<i64> order, Arr<double> kp_uv, 
           if (oct[k] < lo_[i] || oct[k] > hi_[i]) continue;
           if (pts && pts[k] >= 0) continue;
           if (qur && kur && !(kur[k] < 0 || std::abs(qur[i] - kur[k]) <= r)) continue;
+          if (gz) {  // reprojection chi-square gate of local mapping's fusion (project_match)
+            double e2 = (dx * dx + dy * dy) / sig2[oct[k]];
+            const bool st = kur[k] >= 0;
+            if (st) {
+              const double w = inv_ur_sigma2 > 0 ? inv_ur_sigma2 : 1.0 / sig2[oct[k]];
+              const double e = bf / std::max(gz[i], 1e-9) - (uv[2 * k] - kur[k]);
+              e2 = e2 + (e * e) * w;
+            }
+            if (!(e2 < (st ? chi2_stereo : chi2_mono))) continue;
+          }
           const int d = hamming32(qd + 32 * i, kd + 32 * k);
           if (d < best) {
             if (best_k >= 0) second = best;
