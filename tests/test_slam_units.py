@@ -188,6 +188,15 @@ def test_native_pose_solver_equals_numpy(stereo):
     assert np.abs(a - start).max() > 1e-3  # it moved
 
 
+def test_native_build_reports_a_missing_compiler(tmp_path, monkeypatch):
+    from segs.slam import native
+
+    monkeypatch.setenv("CXX", "no-such-compiler-xyz")
+    with pytest.raises(RuntimeError, match="no C\\+\\+ compiler.*no-such-compiler-xyz"):
+        native._compile("segs_slam_native_test", tmp_path / "x.so")
+    assert not list(tmp_path.iterdir())  # nothing half-written
+
+
 def test_native_map_bookkeeping_equals_python():
     """Keyframe culling's redundancy count and the point-geometry gather give the Python loops'
     results on a real map (synthetic monocular orbit: many observers per point), including after

@@ -25,14 +25,17 @@ from types import ModuleType
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("bindings.cpp", "projection.cpp", "binning.cpp", "forward.cpp", "backward.cpp", "ssim.cpp")
 HEADERS = ("raster.h", "projection.h", "simd.h", "pool.h", "ssim.h")
+_lock = threading.Lock()
+_module: ModuleType | None = None
+_error: str | None = None
 
 
 class BuildError(RuntimeError):
     """The CPU kernels cannot be compiled or loaded here; the message says why."""
 
 
-def _cflags(fp_contract: str = "fast") -> list[str]:
-    flags = ["-O3", "-fopenmp", f"-ffp-contract={fp_contract}", "-fno-math-errno", "-fno-trapping-math",
+def _cflags() -> list[str]:
+    flags = ["-O3", "-fopenmp", "-ffp-contract=fast", "-fno-math-errno", "-fno-trapping-math",
              "-Wno-psabi"]
     if platform.machine() in ("x86_64", "AMD64"):
         flags.append("-march=native")
@@ -60,72 +63,16 @@ def cache_dir() -> Path:
     return Path(base) / "segs" / "raster"
 
 
-class KernelBuild:
-    """One C++ extension built on first use and cached: its name prefix, source folder, files and
-    the environment variable that disables it. segs.raster builds the rasterizer with it and
-    segs.slam the tracker's matching kernels (same cache, compiler flags and error handling)."""
+def build_name() -> str:
+    """Extension name = ``segs_raster_cpu_<hash of everything the binary depends on>``."""
+    import torch
 
-    def __init__(self, prefix: str, csrc: Path, sources: tuple[str, ...], headers: tuple[str, ...],
-                 disable_env: str, fp_contract: str = "fast"):
-        self.fp_contract = fp_contract  # "off": no fused multiply-add, float results as numpy's
-        self.prefix, self.csrc, self.sources, self.headers = prefix, csrc, sources, headers
-        self.disable_env = disable_env
-        self._lock = threading.Lock()
-        self._module: ModuleType | None = None
-        self._error: str | None = None
-
-    def build_name(self) -> str:
-        """``<prefix>_<hash of everything the binary depends on>``."""
-        import torch
-
-        h = hashlib.sha256()
-        for f in self.sources + self.headers:
-            h.update(f.encode() + (self.csrc / f).read_bytes())
-        parts = [" ".join(_cflags(self.fp_contract)), torch.__version__, sys.version, platform.machine(), _cpu_signature()]
-        h.update("\n".join(parts).encode())
-        return f"{self.prefix}_{h.hexdigest()[:16]}"
-
-    def compile(self, name: str, build_dir: Path) -> ModuleType:
-        from torch.utils import cpp_extension
-
-        cxx = os.environ.get("CXX", "c++")
-        if shutil.which(cxx) is None:
-            raise BuildError(f"no C++ compiler: '{cxx}' not found on PATH (install g++ or set CXX)")
-        if not cpp_extension.is_ninja_available():
-            raise BuildError("ninja is not installed (pip install ninja)")
-        build_dir.mkdir(parents=True, exist_ok=True)
-        try:
-            return cpp_extension.load(
-                name, [str(self.csrc / f) for f in self.sources], extra_cflags=_cflags(self.fp_contract),
-                extra_ldflags=["-fopenmp"], build_directory=str(build_dir), verbose=False,
-            )
-        except Exception as exc:  # compiler errors arrive as RuntimeError with the ninja log
-            lines = [ln for ln in str(exc).splitlines() if "error" in ln.lower()][:5]
-            detail = "; ".join(lines) or str(exc).splitlines()[0]
-            raise BuildError(f"building the C++ kernels failed in {build_dir}: {detail}") from exc
-
-    def load(self) -> ModuleType:
-        """The compiled kernels, building them on first use; raises BuildError saying why not."""
-        if os.environ.get(self.disable_env) == "1":
-            raise BuildError(f"disabled by {self.disable_env}=1")
-        if self._module is not None:
-            return self._module
-        with self._lock:
-            if self._module is not None:
-                return self._module
-            if self._error is not None:
-                raise BuildError(self._error)
-            name = self.build_name()
-            build_dir = cache_dir() / name
-            try:
-                self._module = _import_built(name, build_dir) or self.compile(name, build_dir)
-            except BuildError as exc:
-                self._error = str(exc)
-                raise
-            except Exception as exc:  # e.g. a corrupt cached .so
-                self._error = f"loading the C++ kernels from {build_dir} failed: {exc}"
-                raise BuildError(self._error) from exc
-            return self._module
+    h = hashlib.sha256()
+    for f in SOURCES + HEADERS:
+        h.update(f.encode() + (CSRC / f).read_bytes())
+    parts = [" ".join(_cflags()), torch.__version__, sys.version, platform.machine(), _cpu_signature()]
+    h.update("\n".join(parts).encode())
+    return f"segs_raster_cpu_{h.hexdigest()[:16]}"
 
 
 def _import_built(name: str, build_dir: Path) -> ModuleType | None:
@@ -138,18 +85,46 @@ def _import_built(name: str, build_dir: Path) -> ModuleType | None:
     return module
 
 
-RASTER = KernelBuild("segs_raster_cpu", CSRC, SOURCES, HEADERS, "SEGS_RASTER_NO_CPU")
-
-
-def build_name() -> str:
-    """The rasterizer's extension name: ``segs_raster_cpu_<hash>``."""
-    return RASTER.build_name()
-
-
 def _compile(name: str, build_dir: Path) -> ModuleType:
-    return RASTER.compile(name, build_dir)
+    from torch.utils import cpp_extension
+
+    cxx = os.environ.get("CXX", "c++")
+    if shutil.which(cxx) is None:
+        raise BuildError(f"no C++ compiler: '{cxx}' not found on PATH (install g++ or set CXX)")
+    if not cpp_extension.is_ninja_available():
+        raise BuildError("ninja is not installed (pip install ninja)")
+    build_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        return cpp_extension.load(
+            name, [str(CSRC / f) for f in SOURCES], extra_cflags=_cflags(),
+            extra_ldflags=["-fopenmp"], build_directory=str(build_dir), verbose=False,
+        )
+    except Exception as exc:  # compiler errors arrive as RuntimeError with the ninja log
+        lines = [ln for ln in str(exc).splitlines() if "error" in ln.lower()][:5]
+        detail = "; ".join(lines) or str(exc).splitlines()[0]
+        raise BuildError(f"building the C++ kernels failed in {build_dir}: {detail}") from exc
 
 
 def load_extension() -> ModuleType:
-    """The compiled rasterizer kernels, building them on first use; raises BuildError saying why not."""
-    return RASTER.load()
+    """The compiled kernels, building them on first use; raises BuildError saying why not."""
+    global _module, _error
+    if os.environ.get("SEGS_RASTER_NO_CPU") == "1":
+        raise BuildError("disabled by SEGS_RASTER_NO_CPU=1")
+    if _module is not None:
+        return _module
+    with _lock:
+        if _module is not None:
+            return _module
+        if _error is not None:
+            raise BuildError(_error)
+        name = build_name()
+        build_dir = cache_dir() / name
+        try:
+            _module = _import_built(name, build_dir) or _compile(name, build_dir)
+        except BuildError as exc:
+            _error = str(exc)
+            raise
+        except Exception as exc:  # e.g. a corrupt cached .so
+            _error = f"loading the C++ kernels from {build_dir} failed: {exc}"
+            raise BuildError(_error) from exc
+        return _module

@@ -269,7 +269,7 @@ py::array_t<double> solve_pose(Arr<double> w2c, Arr<double> P, Arr<double> uv, A
 
 void register_map_kernels(py::module_& m);  // map.cpp
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+PYBIND11_MODULE(SEGS_EXTENSION_NAME, m) {
   m.doc() = "segs SLAM kernels: projection search, motion-only optimisation, map bookkeeping";
   m.def("best_two_in_radius", &best_two_in_radius);
   m.def("solve_pose", &solve_pose);
