@@ -29,6 +29,7 @@ from types import ModuleType
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ("match.cpp", "map.cpp")
+HEADERS = ("common.h",)
 FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-fvisibility=hidden")
 _lock = threading.Lock()
 _state: dict[str, object] = {}  # "module" or "error", once per process
@@ -53,7 +54,7 @@ def _name() -> str:
     import pybind11
 
     h = hashlib.sha256()
-    for f in SOURCES:
+    for f in SOURCES + HEADERS:
         h.update(f.encode() + (CSRC / f).read_bytes())
     h.update("\n".join([" ".join(_flags()), sys.version, pybind11.__version__, _cpu_flags()]).encode())
     return f"segs_slam_native_{h.hexdigest()[:16]}"

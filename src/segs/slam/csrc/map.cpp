@@ -5,6 +5,8 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include "common.h"
+
 #include <algorithm>
 #include <cstdint>
 #include <stdexcept>
@@ -15,9 +17,9 @@ namespace py = pybind11;
 
 namespace {
 
-using i64 = std::int64_t;
-template <typename T>
-using Arr = py::array_t<T, py::array::c_style | py::array::forcecast>;
+using segs_slam::Arr;
+using segs_slam::hamming32;
+using segs_slam::i64;
 
 i64 as_int(PyObject* o) {
   const long long v = PyLong_AsLongLong(o);
@@ -136,13 +138,7 @@ py::tuple distinctive_descriptors(const py::list& obs, const py::dict& descs) {
     if (m < 2) continue;
     dist.assign(m * m, 0);
     for (std::size_t a = 0; a < m; ++a)
-      for (std::size_t b = a + 1; b < m; ++b) {
-        const auto* x = reinterpret_cast<const std::uint64_t*>(d[a]);
-        const auto* y = reinterpret_cast<const std::uint64_t*>(d[b]);
-        const int h = __builtin_popcountll(x[0] ^ y[0]) + __builtin_popcountll(x[1] ^ y[1]) +
-                      __builtin_popcountll(x[2] ^ y[2]) + __builtin_popcountll(x[3] ^ y[3]);
-        dist[a * m + b] = dist[b * m + a] = h;
-      }
+      for (std::size_t b = a + 1; b < m; ++b) dist[a * m + b] = dist[b * m + a] = hamming32(d[a], d[b]);
     int best_med = 0;
     std::size_t best = 0;
     for (std::size_t a = 0; a < m; ++a) {

@@ -10,6 +10,8 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include "common.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -20,9 +22,9 @@ namespace py = pybind11;
 
 namespace {
 
-using i64 = std::int64_t;
-template <typename T>
-using Arr = py::array_t<T, py::array::c_style | py::array::forcecast>;
+using segs_slam::Arr;
+using segs_slam::hamming32;
+using segs_slam::i64;
 
 // numpy's floor division of two doubles (npymath's npy_divmod), so that cell ranges match the
 // Python query to the bit.
@@ -41,13 +43,6 @@ double floor_div(double a, double b) {
 i64 cell_of(double v, double cell, i64 n) {
   i64 c = static_cast<i64>(floor_div(v, cell));
   return c < 0 ? 0 : (c > n - 1 ? n - 1 : c);
-}
-
-int hamming32(const std::uint8_t* a, const std::uint8_t* b) {
-  const auto* x = reinterpret_cast<const std::uint64_t*>(a);
-  const auto* y = reinterpret_cast<const std::uint64_t*>(b);
-  return __builtin_popcountll(x[0] ^ y[0]) + __builtin_popcountll(x[1] ^ y[1]) +
-         __builtin_popcountll(x[2] ^ y[2]) + __builtin_popcountll(x[3] ^ y[3]);
 }
 
 // Best and second-best keypoint per query within its radius. Shapes: start [nx*ny+1], order [N],
