@@ -52,7 +52,8 @@ class TrackingConfig:
     min_pose_inliers: int = 10  # inliers of a motion / reference / PnP pose to accept it (ORB-SLAM: 10)
     kf_max_gap: int = 15  # a keyframe at least every N frames (if c2 holds); authors: 15
     kf_min_gap: int = 3  # ratio-rule keyframes not sooner than this (paces single-thread mode)
-    kf_min_gap_mono: int = 0  # idem, monocular (its keyframes are its only source of new points)
+    kf_min_gap_mono: int = 5  # idem, monocular
+    kf_view_change_deg_mono: float = 3.0  # monocular: ... unless the view changed this much since the newest keyframe
     kf_ref_ratio: float = 0.75  # inliers / reference keyframe's points below this -> keyframe (ORB-SLAM3)
     kf_ref_ratio_mono: float = 0.9
     kf_weak_mono: int = 100  # monocular: a keyframe whenever fewer points are tracked (ORB-SLAM3 c4: 75)

@@ -513,7 +513,7 @@ class Tracker(StateFields):
         gap = frame.index - self.last_kf_frame
         c1a = gap >= cfg.kf_max_gap
         min_gap = cfg.kf_min_gap_mono if su.sensor == "mono" else cfg.kf_min_gap
-        c1b = gap >= min_gap and self.mapping.idle()
+        c1b = self.mapping.idle() and (gap >= min_gap or (su.sensor == "mono" and self._view_changed(frame)))
         c1c = su.sensor != "mono" and (n_inl < cfg.kf_ref_ratio_weak * n_ref or need_close)
         # coverage (ours): the tracked points fell below a share of the best count since the last
         # keyframe; like c1c a need (tracking is about to fail), so it ignores kf_min_gap
@@ -525,6 +525,23 @@ class Tracker(StateFields):
         # keyframes are the only source of new points
         c4 = su.sensor == "mono" and cfg.kf_min_tracked < n_inl < cfg.kf_weak_mono
         return (c2 and (c1a or c1b or c1c or low_cover)) or c4
+
+    def _view_changed(self, frame: SlamFrame) -> bool:
+        """Monocular: the camera turned, or moved across the angle its baseline subtends at the
+        median depth of the newest keyframe's points, by kf_view_change_deg_mono or more since that
+        keyframe. Pacing (kf_min_gap_mono) then no longer holds a keyframe back: it is meant for a
+        view that barely changes, as at 30 Hz on a hand-held camera (0: pacing always holds)."""
+        deg, m = self.cfg.kf_view_change_deg_mono, self.map
+        if deg <= 0 or not m.kfs:
+            return False
+        kf = m.kfs[max(m.kfs)]
+        R = frame.w2c[:3, :3] @ kf.w2c[:3, :3].T
+        if np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))) >= deg:
+            return True
+        _, pids = m.kf_point_ids(kf)
+        depth = np.median(transform(kf.w2c, m.pos[pids])[:, 2]) if len(pids) else 0.0
+        base = np.linalg.norm(cam_center(frame.w2c) - kf.center)
+        return depth > 0 and np.degrees(np.arctan2(base, depth)) >= deg
 
     def _create_keyframe(self, frame: SlamFrame) -> KeyFrame:
         m = self.map
