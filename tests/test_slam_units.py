@@ -71,17 +71,21 @@ def test_hamming_matches_opencv(image):
 
 
 def test_knn_hamming_equals_bfmatcher_knn_including_ties():
+    """The C++ kernel and cv2.batchDistance against BFMatcher.knnMatch, ties included."""
     rng = np.random.default_rng(6)
     a = rng.integers(0, 256, (200, 32), dtype=np.uint8)
     b = rng.integers(0, 256, (150, 32), dtype=np.uint8)
     b[:60] = a[:60] ^ (rng.random((60, 32)) < 0.05).astype(np.uint8)  # near duplicates
     b[60:70] = b[50:60]  # exact ties
-    for db, k in ((b, 8), (b[:3], 8), (b, 2)):
-        dist, nidx = knn_hamming(a, db, k)
-        ref = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, db, k=k)
-        for i, ms in enumerate(ref):
-            assert [m.trainIdx for m in ms] == nidx[i][nidx[i] >= 0].tolist()
-            assert [m.distance for m in ms] == dist[i][nidx[i] >= 0].tolist()
+    a[100:140] = a[100]  # repeated queries: ties at every rank
+    for native in (True, False):
+        for db, k in ((b, 8), (b[:3], 8), (b, 2), (b, 1)):
+            dist, nidx = knn_hamming(a, db, k, native=native)
+            ref = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(a, db, k=k)
+            assert dist.shape == nidx.shape == (len(a), min(k, len(db)))
+            for i, ms in enumerate(ref):
+                assert [m.trainIdx for m in ms] == nidx[i][nidx[i] >= 0].tolist()
+                assert [m.distance for m in ms] == dist[i][nidx[i] >= 0].tolist()
 
 
 def test_knn_by_node_is_knn_within_each_vocabulary_node():

@@ -260,13 +260,63 @@ py::array_t<double> solve_pose(Arr<double> w2c, Arr<double> P, Arr<double> uv, A
   return result;
 }
 
+// k nearest descriptors of db [B,32] for each of da [A,32] (Hamming) -> (distances [A,k'] int32,
+// indices [A,k'] int32), k' = min(k, B). cv2.batchDistance's selection, entry for entry: targets in
+// index order, one enters when strictly nearer than the current k'-th and goes after those at
+// the same distance, so ties keep the lower index first.
+// One query's running k' nearest (d ascending, n their indices): cv2.batchDistance's insertion.
+inline void knn_insert(std::int32_t* d, std::int32_t* n, i64 kk, int h, i64 j) {
+  if (h >= d[kk - 1]) return;
+  i64 s = kk - 2;
+  for (; s >= 0 && d[s] > h; --s) {
+    d[s + 1] = d[s];
+    n[s + 1] = n[s];
+  }
+  d[s + 1] = h;
+  n[s + 1] = static_cast<std::int32_t>(j);
+}
+
+py::tuple knn_hamming(const Arr<std::uint8_t>& da, const Arr<std::uint8_t>& db, int k) {
+  const i64 A = da.shape(0), B = db.shape(0);
+  const i64 kk = std::max<i64>(0, std::min<i64>(k, B));
+  Arr<std::int32_t> dist({A, kk}), idx({A, kk});
+  const auto* a = reinterpret_cast<const std::uint64_t*>(da.data());
+  const auto* b = reinterpret_cast<const std::uint64_t*>(db.data());
+  std::int32_t* dp = dist.mutable_data();
+  std::int32_t* ip = idx.mutable_data();
+  if (kk == 0) return py::make_tuple(dist, idx);
+  {
+    py::gil_scoped_release release;
+    std::fill(dp, dp + A * kk, std::numeric_limits<std::int32_t>::max());
+    std::fill(ip, ip + A * kk, -1);
+    constexpr i64 Q = 4;  // queries per pass over db: each target's 4 words are loaded once
+    for (i64 i0 = 0; i0 < A; i0 += Q) {
+      const i64 nq = std::min(Q, A - i0);
+      std::uint64_t q[Q][4] = {};
+      for (i64 t = 0; t < nq; ++t)
+        for (int w = 0; w < 4; ++w) q[t][w] = a[4 * (i0 + t) + w];
+      for (i64 j = 0; j < B; ++j) {
+        const std::uint64_t* y = b + 4 * j;
+        int h[Q];
+        for (i64 t = 0; t < Q; ++t)
+          h[t] = __builtin_popcountll(q[t][0] ^ y[0]) + __builtin_popcountll(q[t][1] ^ y[1]) +
+                 __builtin_popcountll(q[t][2] ^ y[2]) + __builtin_popcountll(q[t][3] ^ y[3]);
+        for (i64 t = 0; t < nq; ++t)
+          knn_insert(dp + (i0 + t) * kk, ip + (i0 + t) * kk, kk, h[t], j);
+      }
+    }
+  }
+  return py::make_tuple(dist, idx);
+}
+
 }  // namespace
 
 void register_map_kernels(py::module_& m);  // map.cpp
 
 PYBIND11_MODULE(SEGS_EXTENSION_NAME, m) {
-  m.doc() = "segs SLAM kernels: projection search, motion-only optimisation, map bookkeeping";
+  m.doc() = "segs SLAM kernels: projection search, kNN, motion-only optimisation, map bookkeeping";
   m.def("best_two_in_radius", &best_two_in_radius);
   m.def("solve_pose", &solve_pose);
+  m.def("knn_hamming", &knn_hamming);
   register_map_kernels(m);
 }
