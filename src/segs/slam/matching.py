@@ -157,8 +157,8 @@ def knn_hamming(da: np.ndarray, db: np.ndarray, k: int, native: bool = True) -> 
     cv2.batchDistance is the kNN search inside cv2.BFMatcher.knnMatch (same neighbours, same
     order, ties included) without one DMatch object per pair. -> (distances [A,k'] int32,
     indices into db [A,k'] int32, -1 where there is no neighbour), k' = min(k, len(db)).
-    native: the C++ kernel where it is built (the same selection, entry for entry, at 5-7x
-    batchDistance's speed, whose per-pair function call costs more than the 4 popcounts).
+    native: the C++ kernel where it is built (the same selection, entry for entry, at about twice
+    batchDistance's speed: its per-pair function call costs more than the 4 popcounts).
     """
     ext = kernels() if native else None
     if ext is not None and len(da) and len(db):

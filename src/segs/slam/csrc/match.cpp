@@ -1,4 +1,4 @@
-// The ORB tracker's two per-frame kernels in C++.
+// The ORB frontend's matching kernels in C++ (projection search, motion-only pose, descriptor kNN).
 //
 // 1. Projection search: grid radius query, octave / free / right-coordinate filters, Hamming
 //    distances and the best / second-best candidate per query, in one pass.
@@ -260,10 +260,6 @@ py::array_t<double> solve_pose(Arr<double> w2c, Arr<double> P, Arr<double> uv, A
   return result;
 }
 
-// k nearest descriptors of db [B,32] for each of da [A,32] (Hamming) -> (distances [A,k'] int32,
-// indices [A,k'] int32), k' = min(k, B). cv2.batchDistance's selection, entry for entry: targets in
-// index order, one enters when strictly nearer than the current k'-th and goes after those at
-// the same distance, so ties keep the lower index first.
 // One query's running k' nearest (d ascending, n their indices): cv2.batchDistance's insertion.
 inline void knn_insert(std::int32_t* d, std::int32_t* n, i64 kk, int h, i64 j) {
   if (h >= d[kk - 1]) return;
@@ -276,6 +272,10 @@ inline void knn_insert(std::int32_t* d, std::int32_t* n, i64 kk, int h, i64 j) {
   n[s + 1] = static_cast<std::int32_t>(j);
 }
 
+// k nearest descriptors of db [B,32] for each of da [A,32] (Hamming) -> (distances [A,k'] int32,
+// indices [A,k'] int32), k' = min(k, B). cv2.batchDistance's selection, entry for entry: targets in
+// index order, one enters when strictly nearer than the current k'-th and goes after those at
+// the same distance, so ties keep the lower index first.
 py::tuple knn_hamming(const Arr<std::uint8_t>& da, const Arr<std::uint8_t>& db, int k) {
   const i64 A = da.shape(0), B = db.shape(0);
   const i64 kk = std::max<i64>(0, std::min<i64>(k, B));
