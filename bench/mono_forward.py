@@ -134,8 +134,7 @@ def run_segs(seq, frames) -> tuple[dict, dict]:
 
 def run_two_view(seq, frames) -> tuple[dict, dict]:
     fc = FeatureConfig()
-    ex = OrbExtractor(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold,
-                      fc.min_fast_threshold, fc.cell_size, fc.oversample)
+    ex = OrbExtractor.from_config(fc)
     traj, failed, s = two_view_odometry(frames, seq.camera.K, ex)
     return _summary(seq, traj, path_length(seq.gt_poses), {"failed_steps": failed}), {"fps": len(frames) / s}
 

@@ -130,8 +130,7 @@ def test_two_view_baseline_recovers_each_step():
     from segs.slam.config import FeatureConfig
     from segs.slam.features import OrbExtractor
     fc = FeatureConfig()
-    ex = OrbExtractor(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold, fc.min_fast_threshold,
-                      fc.cell_size, fc.oversample)
+    ex = OrbExtractor.from_config(fc)
     traj, failed, seconds = bench.two_view_odometry(frames, seq.camera.K, ex)
     assert failed == 0 and seconds > 0 and sorted(traj) == list(range(len(seq)))
     np.testing.assert_allclose(traj[0], np.eye(4))

@@ -13,8 +13,6 @@ from segs.slam.runner import run_sequence
 from segs.trajectory import ate
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"
-# texture-poor, heavy JPEG: low FAST thresholds (see datasets/tum_fr3_cabinet_kf/README.md)
-TUM_FEATURES = {"fast_threshold": 7, "min_fast_threshold": 3}
 
 
 def _check_run(fe, seq, run, n=None):
@@ -34,13 +32,15 @@ def _check_run(fe, seq, run, n=None):
     return traj
 
 
-@pytest.mark.parametrize("sensor,frames", [("rgbd", 58), ("mono", 30)])
-def test_tum_cabinet_tracks_without_error(sensor, frames):
+@pytest.mark.parametrize("sensor,frames,min_tracked", [("rgbd", 58, 55), ("mono", 30, 5)])
+def test_tum_cabinet_tracks_without_error(sensor, frames, min_tracked):
+    """The defaults on texture-poor, heavily compressed JPEGs (datasets/tum_fr3_cabinet_kf/README.md):
+    their corners come from the third FAST pass (RGB-D tracked 20 of 58 frames without it)."""
     seq = TumSequence(DATA / "tum_fr3_cabinet_kf", sensor=sensor)
-    fe = OrbFrontend(seq.camera, sensor, features=TUM_FEATURES)
+    fe = OrbFrontend(seq.camera, sensor)
     run = run_sequence(fe, seq, frames=range(frames))
     traj = _check_run(fe, seq, run, frames)
-    assert len(traj) >= 5
+    assert len(traj) >= min_tracked
     res = ate(seq.timestamps, traj, seq.gt_poses, "sim3" if sensor == "mono" else "se3")
     assert res["rmse"] is not None and np.isfinite(res["rmse"])
 
@@ -52,7 +52,7 @@ def test_tum_cabinet_rgbd_depth_tolerant_retry():
     seq = TumSequence(DATA / "tum_fr3_cabinet_kf", sensor="rgbd")
     fes = {}
     for k in (0.0, 0.012):
-        fes[k] = OrbFrontend(seq.camera, "rgbd", features=TUM_FEATURES, tracking={"rgbd_retry_depth_noise": k})
+        fes[k] = OrbFrontend(seq.camera, "rgbd", tracking={"rgbd_retry_depth_noise": k})
         run_sequence(fes[k], seq, frames=range(6))
     assert 1 in fes[0.0].lost_frames() and fes[0.0].stats()["depth_retries"] == 0
     fe = fes[0.012]

@@ -62,6 +62,21 @@ def test_orb_extractor_counts_and_spreads_keypoints(image):
     assert coverage(kp.uv) >= coverage([k.pt for k in plain])
 
 
+def test_orb_extractor_lowers_fast_threshold_only_as_far_as_needed(image):
+    """FAST thresholds are tried in turn (20, 7, 3) until one finds n_features corners: a
+    low-contrast image gets its keypoints from the third pass, a textured one never reaches it."""
+    flat = (128 + 0.1 * (image[0].astype(np.float64) - 128)).round().astype(np.uint8)  # 90 % contrast cut
+    two, three = OrbExtractor(500, 1.2, 8, 20, 7, floor_fast_threshold=7), OrbExtractor(500, 1.2, 8, 20, 7)
+    assert two.fast_thresholds == (20, 7) and three.fast_thresholds == (20, 7, 3)
+    few, many = two.extract(flat), three.extract(flat)
+    assert len(few) < 200 and len(many) == 500
+    plain = cv2.ORB_create(1500, 1.2, 8, 19, 0, 2, cv2.ORB_HARRIS_SCORE, 31, 3).detect(flat, None)
+    assert set(map(tuple, many.uv.round(3))) <= {(round(k.pt[0], 3), round(k.pt[1], 3)) for k in plain}
+    rich_two, rich_three = two.extract(image[0]), three.extract(image[0])  # enough corners at 20 or 7
+    assert len(rich_two) == 500 and np.array_equal(rich_two.uv, rich_three.uv)
+    assert np.array_equal(rich_two.desc, rich_three.desc)
+
+
 def test_hamming_matches_opencv(image):
     kp = OrbExtractor(200, 1.2, 8, 20, 7).extract(image[0])
     d = kp.desc
@@ -431,6 +446,9 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
                        ("triangulate_node_level", -1), ("triangulate_node_level", 9)):
         with pytest.raises(ConfigError, match=f"slam.mapping.{key}"):
             OrbFrontend(cam, "rgbd", mapping={key: value})
+    for key, value in (("fast_threshold", 0), ("floor_fast_threshold", 300), ("n_features", 0)):
+        with pytest.raises(ConfigError, match=f"slam.features.{key}"):
+            OrbFrontend(cam, "rgbd", features={key: value})
     for key, value in (("rgbd_depth_noise", 0.0), ("rgbd_retry_depth_noise", -0.01)):
         with pytest.raises(ConfigError, match=f"slam.tracking.{key}"):
             OrbFrontend(cam, "rgbd", tracking={key: value})

@@ -14,9 +14,20 @@ class FeatureConfig:
     n_levels: int = 8
     fast_threshold: int = 20
     min_fast_threshold: int = 7
+    floor_fast_threshold: int = 3
     cell_size: int = 30
     oversample: float = 3.0
     grid_cell: float = 16.0
+
+    def problems(self) -> list[tuple[str, str]]:
+        """(key, what is wrong) for values the ORB extractor cannot run with."""
+        out = []
+        for key in ("fast_threshold", "min_fast_threshold", "floor_fast_threshold"):
+            if not 1 <= getattr(self, key) <= 255:
+                out.append((key, f"a FAST intensity threshold in [1, 255]; got {getattr(self, key)}"))
+        if self.n_features < 1:
+            out.append(("n_features", f"at least 1 keypoint; got {self.n_features}"))
+        return out
 
 
 @dataclass

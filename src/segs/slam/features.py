@@ -97,13 +97,15 @@ class OrbExtractor:
 
     n_features: wanted keypoints per image; scale_factor / n_levels: pyramid; fast_threshold: FAST
     threshold of the first pass; min_fast_threshold: threshold of a second pass run when the first
-    finds fewer than n_features corners (texture-poor images); cell_size: distribution cell in level
-    pixels; oversample: candidates kept by OpenCV before the distribution (x n_features).
+    finds fewer than n_features corners (texture-poor images); floor_fast_threshold: a third pass
+    when the second still finds fewer (blurred or heavily compressed texture-poor frames; not below
+    min_fast_threshold: none); cell_size: distribution cell in level pixels; oversample: candidates
+    kept by OpenCV before the distribution (x n_features).
     """
 
     def __init__(self, n_features: int = 1500, scale_factor: float = 1.2, n_levels: int = 8,
                  fast_threshold: int = 20, min_fast_threshold: int = 7, cell_size: int = 30,
-                 oversample: float = 3.0):
+                 oversample: float = 3.0, floor_fast_threshold: int = 3):
         self.n_features = int(n_features)
         self.scale_factor = float(scale_factor)
         self.n_levels = int(n_levels)
@@ -113,15 +115,27 @@ class OrbExtractor:
         make = lambda th: cv2.ORB_create(nfeatures=n_cand, scaleFactor=self.scale_factor,
                                          nlevels=self.n_levels, edgeThreshold=19, patchSize=31,
                                          fastThreshold=int(th), scoreType=cv2.ORB_HARRIS_SCORE)
-        self._orb = make(fast_threshold)
-        self._orb_low = make(min_fast_threshold) if min_fast_threshold < fast_threshold else None
+        # FAST thresholds tried in turn until one finds n_features corners (the last one's are kept)
+        ths = [int(fast_threshold)]
+        for th in (min_fast_threshold, floor_fast_threshold):
+            if int(th) < ths[-1]:
+                ths.append(int(th))
+        self.fast_thresholds = tuple(ths)
+        self._orbs = [make(th) for th in ths]
         self.scales = self.scale_factor ** np.arange(self.n_levels)
         self.sigma2 = self.scales ** 2
 
+    @classmethod
+    def from_config(cls, fc) -> "OrbExtractor":
+        """The extractor of a FeatureConfig (segs.slam.config; conf/slam/orb.yaml `features`)."""
+        return cls(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold, fc.min_fast_threshold,
+                   fc.cell_size, fc.oversample, fc.floor_fast_threshold)
+
     def _detect(self, gray: np.ndarray) -> tuple[list, np.ndarray | None]:
-        kps, desc = self._orb.detectAndCompute(gray, None)
-        if self._orb_low is not None and len(kps) < self.n_features:
-            kps, desc = self._orb_low.detectAndCompute(gray, None)
+        for orb in self._orbs:
+            kps, desc = orb.detectAndCompute(gray, None)
+            if len(kps) >= self.n_features:
+                break
         return kps, desc
 
     def extract(self, gray: np.ndarray) -> Keypoints:

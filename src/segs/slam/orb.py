@@ -77,8 +77,7 @@ class OrbFrontend(Frontend):
         fc, tc = self.cfg.features, self.cfg.tracking
         baseline = camera.baseline if sensor == "stereo" else tc.rgbd_baseline
         bf = float(camera.fx * baseline)
-        self.extractor = OrbExtractor(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold,
-                                      fc.min_fast_threshold, fc.cell_size, fc.oversample)
+        self.extractor = OrbExtractor.from_config(fc)
         scales = self.extractor.scales
         self.setup = SensorSetup(
             camera, sensor, camera.K, bf, th_depth=tc.close_depth_factor * baseline,

@@ -381,8 +381,7 @@ def train_from_images(paths: list[str | Path],
     from segs.slam.features import OrbExtractor
 
     fc = cfg.features
-    ex = OrbExtractor(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold, fc.min_fast_threshold,
-                      fc.cell_size, fc.oversample)
+    ex = OrbExtractor.from_config(fc)
     descs, owner = [], []
     for view, valid in training_views(paths, cfg):
         d = view_descriptors(ex, view, valid)
