@@ -36,3 +36,31 @@ def test_blank_start_and_relocalization_without_restart():
     traj = fe.trajectory()
     assert 15 in traj or 16 in traj, "no relocalization after the blank frames"
     assert ate(seq.timestamps, traj, seq.gt_poses, "se3")["rmse"] < 0.02
+
+
+def test_depth_poor_start_waits_init_wait_frames_then_starts_with_fewer_points():
+    """Depth only in the left 30 % of every image (about 360-470 keypoints with depth, under
+    min_init_points = 500): the map starts after init_wait frames with min_init_points_late
+    and the frames after it are tracked; with the late minimum at 500 nothing ever starts."""
+    from dataclasses import replace
+
+    seq = SyntheticSequence(sensor="rgbd", n_frames=24, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
+
+    def depth_poor(i):
+        f = seq[i]
+        d = f.depth.copy()
+        d[:, int(0.3 * d.shape[1]):] = 0
+        return replace(f, depth=d)
+
+    frames = [depth_poor(i) for i in range(len(seq))]
+    for late, first in ((150, 10), (500, None)):
+        fe = OrbFrontend(seq.camera, "rgbd", tracking={"init_wait": 10, "min_init_points_late": late})
+        for f in frames:
+            fe.process(f)
+        traj = fe.trajectory()
+        if first is None:
+            assert not traj
+            continue
+        assert min(traj) == first and set(range(first)) <= set(fe.lost_frames())
+        assert len(traj) >= len(seq) - first - 2
+        assert ate(seq.timestamps, traj, seq.gt_poses, "se3")["rmse"] < 0.02

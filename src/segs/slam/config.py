@@ -39,6 +39,8 @@ class TrackingConfig:
     max_depth: float = 10.0  # depths beyond are unknown
     depth_edge_ratio: float = 0.05  # RGB-D: no depth where the 3x3 depth range exceeds this x depth
     min_init_points: int = 500  # keypoints with depth to start an RGB-D / stereo map (<= n_features/3)
+    init_wait: int = 10  # frames that wait for min_init_points before min_init_points_late will do
+    min_init_points_late: int = 150  # keypoints with depth that start a map after init_wait frames
     window_motion: float = 15.0  # projection radius from the last frame, mono (x scale)
     window_motion_stereo: float = 7.0  # idem, stereo / RGB-D
     window_retry_factor: float = 2.0  # too few matches: searched again with this x the window (ORB-SLAM: 2)
@@ -85,6 +87,11 @@ class TrackingConfig:
     def problems(self) -> list[tuple[str, str]]:
         """(key, what is wrong) for values tracking cannot run with."""
         out = []
+        if self.init_wait < 0:
+            out.append(("init_wait", f"a number of frames >= 0; got {self.init_wait}"))
+        if not 1 <= self.min_init_points_late <= self.min_init_points:
+            out.append(("min_init_points_late", f"between 1 and min_init_points ({self.min_init_points}); "
+                        f"got {self.min_init_points_late}"))
         if not self.rgbd_depth_noise > 0:
             out.append(("rgbd_depth_noise", f"a depth sigma coefficient > 0 (1/m); got {self.rgbd_depth_noise}"))
         if self.rgbd_retry_depth_noise < 0:

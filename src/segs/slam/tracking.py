@@ -79,6 +79,7 @@ class Tracker(StateFields):
         self.last_kf_frame = -(10 ** 9)
         self.last_reloc_frame = -(10 ** 9)
         self.lost_since: int | None = None
+        self.init_waited = 0  # stereo / RGB-D frames that could not start the current map segment
         self.last_good_w2c: np.ndarray | None = None
         self._local_key = None
         self._local_kfs: list[int] = []
@@ -92,7 +93,8 @@ class Tracker(StateFields):
         self.mono_init = MonoInitializer(init_cfg, setup.K, setup.sigma2, self.seed) if setup.mono else None
 
     _STATE = ("poses", "state", "last", "velocity", "ref_kf", "last_kf_frame", "last_reloc_frame", "lost_since",
-              "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init", "depth_retries")
+              "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init", "depth_retries",
+              "init_waited")
 
     def load_state_dict(self, state: dict) -> None:
         """Checkpoints written before TrackingState hold the plain strings: read as the Enum."""
@@ -182,9 +184,13 @@ class Tracker(StateFields):
         if self.setup.sensor == "mono":
             return self._initialize_mono(frame)
         need = min(self.cfg.min_init_points, self.setup.n_features // 3)
+        if self.init_waited >= self.cfg.init_wait:  # depth-poor views: start with fewer points
+            need = min(need, self.cfg.min_init_points_late)
         if int((frame.depth > 0).sum()) < need:
+            self.init_waited += 1
             frame.w2c = None
             return None
+        self.init_waited = 0
         w2c = self.last_good_w2c if self.last_good_w2c is not None else np.eye(4)
         frame.w2c = w2c.copy()
         kf = KeyFrame(self.map.new_kf_id(), frame, frame.w2c)
