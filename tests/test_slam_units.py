@@ -450,7 +450,7 @@ def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
         with pytest.raises(ConfigError, match=f"slam.features.{key}"):
             OrbFrontend(cam, "rgbd", features={key: value})
     for key, value in (("rgbd_depth_noise", 0.0), ("rgbd_retry_depth_noise", -0.01), ("init_wait", -1),
-                       ("min_init_points_late", 501), ("min_init_points_late", 0)):
+                       ("min_init_points_late", 0)):
         with pytest.raises(ConfigError, match=f"slam.tracking.{key}"):
             OrbFrontend(cam, "rgbd", tracking={key: value})
     conf = yaml.safe_load((ROOT / "conf/slam/orb.yaml").read_text())

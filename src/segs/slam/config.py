@@ -89,9 +89,8 @@ class TrackingConfig:
         out = []
         if self.init_wait < 0:
             out.append(("init_wait", f"a number of frames >= 0; got {self.init_wait}"))
-        if not 1 <= self.min_init_points_late <= self.min_init_points:
-            out.append(("min_init_points_late", f"between 1 and min_init_points ({self.min_init_points}); "
-                        f"got {self.min_init_points_late}"))
+        if self.min_init_points_late < 1:  # above min_init_points it has no effect
+            out.append(("min_init_points_late", f"at least 1 keypoint; got {self.min_init_points_late}"))
         if not self.rgbd_depth_noise > 0:
             out.append(("rgbd_depth_noise", f"a depth sigma coefficient > 0 (1/m); got {self.rgbd_depth_noise}"))
         if self.rgbd_retry_depth_noise < 0:
