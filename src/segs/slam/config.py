@@ -67,7 +67,7 @@ class TrackingConfig:
     kf_min_gap: int = 3  # ratio-rule keyframes not sooner than this (paces single-thread mode)
     kf_min_gap_mono: int = 5  # idem, monocular
     kf_view_change_deg_mono: float = 3.0  # monocular: ... unless the view changed this much since the newest keyframe
-    kf_ref_ratio: float = 0.65  # inliers / reference keyframe's points below this -> keyframe (ORB-SLAM3: 0.75)
+    kf_ref_ratio: float = 0.75  # inliers / reference keyframe's points below this -> keyframe (ORB-SLAM3)
     kf_ref_ratio_mono: float = 0.9
     kf_weak_mono: int = 100  # monocular: a keyframe whenever fewer points are tracked (ORB-SLAM3 c4: 75)
     kf_track_ratio: float = 0.5  # ... or below this share of the best count since the last keyframe
