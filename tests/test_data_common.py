@@ -100,6 +100,24 @@ def test_read_rgb_rejects_float_images(tmp_path):
         read_rgb(path)
 
 
+
+@pytest.mark.parametrize("dtype, channels", [(np.uint8, 3), (np.uint8, 4), (np.uint16, 3), (np.uint8, 1),
+                                             (np.uint16, 1)])
+def test_read_rgb_values_and_channel_order(tmp_path, dtype, channels):
+    """Every stored value v comes back as v / max in RGB order (BGR(A) files), grey replicated."""
+    import cv2
+    top = np.iinfo(dtype).max
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, top + 1, (7, 9) if channels == 1 else (7, 9, channels), dtype=np.int64).astype(dtype)
+    img.flat[:3] = (0, 1, top)
+    path = tmp_path / "img.png"
+    cv2.imwrite(str(path), img)
+    out = read_rgb(path, (7, 9))
+    assert out.dtype == np.float32 and out.shape == (7, 9, 3) and out.flags["C_CONTIGUOUS"]
+    want = img.astype(np.float32) / np.float32(top)
+    want = np.repeat(want[..., None], 3, axis=2) if channels == 1 else want[:, :, 2::-1]
+    np.testing.assert_array_equal(out, want)
+
 # --- fuzzing: random input is parsed or refused with DataError, never anything else -----------
 
 TOKENS = st.one_of(

