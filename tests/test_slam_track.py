@@ -42,6 +42,16 @@ def test_track_rejects_unknown_slam_keys_as_user_error(tmp_path):
     assert "Traceback" not in out.stderr
 
 
+
+def test_track_does_not_import_torch(tmp_path):
+    """Tracking builds no mapper: segs.track runs without importing torch (2-3 s, about 200 MB)."""
+    code = ("import sys; from segs.config import compose; from segs.track import run; "
+            f"run(compose({BASE!r}, output_dir={str(tmp_path)!r}), progress=False); "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "False"
+
 def test_lost_ranges():
     assert lost_ranges([]) == []
     assert lost_ranges([3, 4, 5, 9]) == [[3, 5], [9, 9]]

@@ -127,12 +127,14 @@ def make_sequence(data_cfg: DictConfig):
     return sequence
 
 
-def validate(cfg: DictConfig) -> None:
+def validate(cfg: DictConfig, mapper: bool = True) -> None:
     """Raise ConfigError naming the first bad key.
 
     Checks, before anything runs: every number of the config is finite, the typed mapper configs
     (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
     the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
+    mapper=False (segs.track, which builds no mapper) skips the typed mapper configs and the
+    raster backend check, and with them importing torch (2-3 s and about 200 MB).
     """
     renamed = OmegaConf.select(cfg, "camera.renamed_to", default=None)
     if renamed is not None:
@@ -144,6 +146,8 @@ def validate(cfg: DictConfig) -> None:
             continue
         if not ok(value):
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
+    if not mapper:
+        return
     from segs.modules.config import mapping_config, model_config, raster_config
 
     if OmegaConf.select(cfg, "model", default=None) is not None:

@@ -51,7 +51,7 @@ def _write_json(path: Path, data: dict) -> None:
 
 def run(cfg: DictConfig, progress: bool = True) -> dict:
     """Track the configured sequence; writes the result files and returns tracking.json's dict."""
-    validate(cfg)
+    validate(cfg, mapper=False)
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     sequence = make_sequence(cfg.data)
