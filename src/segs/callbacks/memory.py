@@ -25,8 +25,10 @@ def rss_mb() -> float:
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process in MB (Linux reports KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / MB
+    """Peak resident set size of this process in MB (Linux reports KiB). The kernel's high-water
+    mark is synced from per-thread counters lazily and can trail the current RSS by a few hundred
+    KB, so the current RSS is taken when larger."""
+    return max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / MB, rss_mb())
 
 
 class MemoryGuard(L.Callback):
