@@ -122,7 +122,7 @@ class MappingConfig:
     ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 10  # keyframes held fixed around the window
     ba_iterations: tuple = (4, 1)  # LM iterations before / after removing outliers (0: one pass); mono, stereo
-    ba_iterations_rgbd: tuple = (1, 1)  # the same for RGB-D (points start at their measured depth)
+    ba_iterations_rgbd: tuple = (1, 0)  # the same for RGB-D (points start at their measured depth)
     ba_min_gain: float = 0.01  # the first pass stops after an iteration gaining less than this fraction of the cost
     cull_points: bool = True
     min_found_ratio: float = 0.25
