@@ -91,6 +91,21 @@ def test_orb_extractor_lowers_fast_threshold_only_as_far_as_needed(image):
     assert np.array_equal(rich_two.desc, rich_three.desc)
 
 
+def test_orb_extractor_descriptors_equal_opencvs_over_all_candidates(image):
+    """Descriptors computed for the distributed keypoints only are the bytes (and the keypoints
+    the ones) that detectAndCompute over every candidate gives for them."""
+    ex = OrbExtractor(300, 1.2, 8, 20, 7, oversample=3.0)
+    for img in image:
+        kp = ex.extract(img)
+        kps, desc = cv2.ORB_create(900, 1.2, 8, 19, 0, 2, cv2.ORB_HARRIS_SCORE, 31, 20).detectAndCompute(img, None)
+        rows = {(k.pt, k.octave): i for i, k in enumerate(kps)}
+        idx = [rows[((float(np.float32(u)), float(np.float32(v))), int(o))] for (u, v), o in zip(kp.uv, kp.octave)]
+        assert 0 < len(kp) <= 300 and len(set(idx)) == len(kp)
+        np.testing.assert_array_equal(kp.desc, desc[idx])
+        np.testing.assert_array_equal(kp.angle, np.float32([kps[i].angle for i in idx]))
+        np.testing.assert_array_equal(kp.response, np.float32([kps[i].response for i in idx]))
+
+
 def test_hamming_matches_opencv(image):
     kp = OrbExtractor(200, 1.2, 8, 20, 7).extract(image[0])
     d = kp.desc

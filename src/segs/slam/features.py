@@ -131,24 +131,29 @@ class OrbExtractor:
         return cls(fc.n_features, fc.scale_factor, fc.n_levels, fc.fast_threshold, fc.min_fast_threshold,
                    fc.cell_size, fc.oversample, fc.floor_fast_threshold)
 
-    def _detect(self, gray: np.ndarray) -> tuple[list, np.ndarray | None]:
+    def _detect(self, gray: np.ndarray) -> list:
+        """Corners (no descriptors) of the first FAST threshold that finds n_features (else the last's)."""
         for orb in self._orbs:
-            kps, desc = orb.detectAndCompute(gray, None)
+            kps = orb.detect(gray, None)
             if len(kps) >= self.n_features:
                 break
-        return kps, desc
+        return kps
 
     def extract(self, gray: np.ndarray) -> Keypoints:
-        """gray [H,W] uint8 -> evenly distributed Keypoints (at most n_features)."""
-        kps, desc = self._detect(gray)
+        """gray [H,W] uint8 -> evenly distributed Keypoints (at most n_features).
+
+        Descriptors are computed for the distributed keypoints only (a third of the candidates;
+        the same bytes as computing them for all, since each depends on its own patch alone)."""
+        kps = self._detect(gray)
+        if not kps:
+            return empty_keypoints()
+        uv, octave, _, resp = _keypoint_arrays(kps)
+        keep = self._distribute(uv, octave, resp)
+        kps, desc = self._orbs[0].compute(gray, [kps[i] for i in keep.tolist()])
         if not kps or desc is None:
             return empty_keypoints()
-        uv = np.array([k.pt for k in kps], np.float64)
-        octave = np.array([k.octave for k in kps], np.int64)
-        angle = np.array([k.angle for k in kps], np.float32)
-        resp = np.array([k.response for k in kps], np.float32)
-        keep = self._distribute(uv, octave, resp)
-        return Keypoints(uv[keep], octave[keep], angle[keep], resp[keep], np.ascontiguousarray(desc[keep]))
+        uv, octave, angle, resp = _keypoint_arrays(kps)
+        return Keypoints(uv, octave, angle, resp, np.ascontiguousarray(desc))
 
     def _distribute(self, uv: np.ndarray, octave: np.ndarray, resp: np.ndarray) -> np.ndarray:
         """Even spatial selection per level (quota per level; leftovers fill the total) -> indices."""
@@ -167,6 +172,14 @@ class OrbExtractor:
             rest = np.setdiff1d(np.arange(len(uv)), sel)
             sel = np.concatenate([sel, rest[round_robin_select(cells[rest], resp[rest], missing)]])
         return np.sort(sel)
+
+
+def _keypoint_arrays(kps: list) -> tuple[np.ndarray, ...]:
+    """OpenCV keypoints -> (uv [N,2] float64, octave [N] int64, angle [N] float32, response [N]
+    float32): one C++ conversion for the positions, generators into arrays for the rest."""
+    n = len(kps)
+    return (cv2.KeyPoint_convert(kps).astype(np.float64), np.fromiter((k.octave for k in kps), np.int64, n),
+            np.fromiter((k.angle for k in kps), np.float32, n), np.fromiter((k.response for k in kps), np.float32, n))
 
 
 def to_gray(rgb: np.ndarray) -> np.ndarray:

@@ -160,7 +160,9 @@ class LocalMapper(StateFields):
             elif baseline >= base_stereo:
                 partners.append((0.0, n))
         # monocular: widest baselines first, so that each keypoint is triangulated with the best
-        # partner (adjacent keyframes have the most shared points but the least parallax)
+        # partner (adjacent keyframes have the most shared points but the least parallax). The new
+        # points' geometry and descriptors are computed once at the end: nothing in the loop reads them
+        new = []
         for _, n in sorted(partners, key=lambda t: t[0]) if mono else partners:
             kf2 = m.kfs[n]
             F = fundamental(kf.w2c, kf2.w2c, K)
@@ -170,12 +172,15 @@ class LocalMapper(StateFields):
                 continue
             X, ok = self._triangulate_pairs(kf, kf2, i1, i2, P1, base_stereo, ratio_factor)
             if ok.any():
-                pids = m.add_points(X[ok], kf, i1[ok])
+                pids = m.add_points(X[ok], kf, i1[ok], geometry=False)
                 for p, j in zip(pids.tolist(), i2[ok].tolist()):
                     m.add_obs(p, kf2, j)
-                m.update_geometry(pids)
-                m.update_descriptors(pids)
+                new.append(pids)
                 self.add_recent(pids)
+        if new:
+            pids = np.concatenate(new)
+            m.update_geometry(pids)
+            m.update_descriptors(pids)
 
     def _nodes(self, kf1: KeyFrame, kf2: KeyFrame) -> tuple[np.ndarray, np.ndarray] | None:
         """Vocabulary-tree node per keypoint of both keyframes at triangulate_node_level (None:
