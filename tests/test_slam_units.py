@@ -236,6 +236,38 @@ def test_native_pose_solver_equals_numpy(stereo):
     assert np.abs(a - start).max() > 1e-3  # it moved
 
 
+@pytest.mark.parametrize("ur_sigma", [None, 0.8])
+@pytest.mark.parametrize("stereo,warm", [(False, False), (True, False), (True, True)])
+def test_native_pose_refinement_equals_numpy(stereo, warm, ur_sigma):
+    """ORB-SLAM's PoseOptimization in one C++ call: same pose (to rounding) and same inliers as
+    the Python rounds, with outliers to classify, monocular / stereo / RGB-D (ur_sigma)."""
+    from segs.slam.native import kernels
+    from segs.slam.optimize import refine_pose
+
+    if kernels() is None:
+        pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
+    rng = np.random.default_rng(7)
+    n = 300
+    P = rng.uniform([-2, -1.5, 2], [2, 1.5, 6], (n, 3))
+    gt = _pose([0.03, -0.08, 0.02], [0.1, -0.05, 0.2])
+    uv, z = _project(gt, P)
+    octave = rng.integers(0, 8, n)
+    uv += rng.normal(0, 1.0, uv.shape) * 1.2 ** octave[:, None]
+    uv[:30] += rng.uniform(-40, 40, (30, 2))  # outliers
+    ur = np.where(rng.random(n) < 0.7, uv[:, 0] - 40.0 / z + rng.normal(0, 0.5, n), -1.0) if stereo else None
+    inv_sigma2 = 1.2 ** (-2.0 * octave)
+    start = _pose([0.05, -0.06, 0.0], [0.14, -0.02, 0.15])
+    kw = dict(rounds=4, min_inliers=10, iterations=20, ur_sigma=ur_sigma if stereo else None, warm=warm)
+    a, inl_a = refine_pose(start, P, uv, ur, inv_sigma2, K, 40.0, native=True, **kw)
+    b, inl_b = refine_pose(start, P, uv, ur, inv_sigma2, K, 40.0, native=False, **kw)
+    assert np.abs(a - b).max() < 1e-9 and np.array_equal(inl_a, inl_b)
+    assert inl_a[30:].mean() > 0.9 and inl_a[:30].mean() < 0.5  # it found the outliers
+    assert np.abs(a[:3, 3] - gt[:3, 3]).max() < 0.02
+    np.testing.assert_allclose(a[:3, :3] @ a[:3, :3].T, np.eye(3), atol=1e-12)
+    few, inl_few = refine_pose(start, P[:5], uv[:5], None, inv_sigma2[:5], K, 40.0, native=True, **kw)
+    assert np.array_equal(few, start) and not inl_few.any()
+
+
 def test_native_build_reports_a_missing_compiler(tmp_path, monkeypatch):
     from segs.slam import native
 

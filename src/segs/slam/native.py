@@ -1,4 +1,4 @@
-"""The frontend's C++ kernels (src/segs/slam/csrc/match.cpp, map.cpp), built on first use.
+"""The frontend's C++ kernels (src/segs/slam/csrc/match.cpp, map.cpp, pose.cpp), built on first use.
 
 The projection search, the motion-only LM and the map bookkeeping loops (see the .cpp files) give
 the results of the numpy / Python code they replace; tests/test_slam_units.py compares the two.
@@ -28,7 +28,7 @@ from pathlib import Path
 from types import ModuleType
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ("match.cpp", "map.cpp")
+SOURCES = ("match.cpp", "map.cpp", "pose.cpp")
 HEADERS = ("common.h",)
 FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-ffp-contract=off", "-fvisibility=hidden")
 _lock = threading.Lock()

@@ -125,7 +125,7 @@ def _solve_pose(w2c: np.ndarray, args: tuple, evaluations: int, native: bool = T
 def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray | None,
                 inv_sigma2: np.ndarray, K: np.ndarray, bf: float, rounds: int = 4,
                 min_inliers: int = 6, iterations: int = 20,
-                ur_sigma: float | None = None, warm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                ur_sigma: float | None = None, warm: bool = False, native: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only bundle adjustment of a w2c from map points P [M,3] and keypoints uv [M,2].
 
     ORB-SLAM's PoseOptimization: `rounds` optimisations (Levenberg-Marquardt on the 6-DOF
@@ -134,8 +134,14 @@ def refine_pose(w2c0: np.ndarray, P: np.ndarray, uv: np.ndarray, ur: np.ndarray 
     RGB-D observations (ur >= 0) add the right-image coordinate); after each round every match
     is classified by its chi2 against 5.991 / 7.815 and only inliers enter the next.
     warm: the start pose is already refined (no gradual widening of the kernel in round one).
+    native: the C++ kernel (segs.slam.native) where it is built, the same steps in one call.
     Returns (w2c [4,4], inlier mask [M]).
     """
+    ext = kernels() if native else None
+    if ext is not None:
+        return ext.refine_pose(w2c0, P, uv, np.zeros(0) if ur is None else ur, inv_sigma2, K, float(bf), int(rounds),
+                               int(min_inliers), int(iterations), 0.0 if ur_sigma is None else float(ur_sigma),
+                               bool(warm))
     n = len(P)
     if n < min_inliers:
         return w2c0.copy(), np.zeros(n, bool)

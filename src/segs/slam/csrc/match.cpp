@@ -1,4 +1,4 @@
-// The ORB frontend's matching kernels in C++ (projection search, motion-only pose, descriptor kNN).
+// The ORB frontend's matching kernels in C++ (projection search, descriptor kNN; the pose solver: pose.cpp).
 //
 // 1. Projection search: grid radius query, octave / free / right-coordinate filters, Hamming
 //    distances and the best / second-best candidate per query, in one pass.
@@ -132,134 +132,6 @@ py::tuple best_two_in_radius(Arr<i64> start, Arr<i64> order, Arr<double> kp_uv, 
   return py::make_tuple(to_np(out_q), to_np(out_k), to_np(out_d1), to_np(out_d2));
 }
 
-// Whitened residuals and J^T J, J^T r of the pose-only reprojection edges at pose (R, t), as in
-// segs.slam.optimize._pose_system. Returns the cost r . r.
-struct PoseProblem {
-  const double *P, *uv, *ur, *w, *w_ur;
-  const bool* stereo;
-  i64 n;
-  double fx, fy, cx, cy, bf;
-
-  double system(const double* T, double* H, double* g) const {
-    for (int i = 0; i < 36; ++i) H[i] = 0.0;
-    for (int i = 0; i < 6; ++i) g[i] = 0.0;
-    double cost = 0.0;
-    auto add = [&](const double* J, double r) {
-      for (int a = 0; a < 6; ++a) {
-        g[a] += J[a] * r;
-        for (int b = 0; b < 6; ++b) H[6 * a + b] += J[a] * J[b];
-      }
-      cost += r * r;
-    };
-    for (i64 i = 0; i < n; ++i) {
-      const double* p = P + 3 * i;
-      const double x = T[0] * p[0] + T[1] * p[1] + T[2] * p[2] + T[3];
-      const double y = T[4] * p[0] + T[5] * p[1] + T[6] * p[2] + T[7];
-      const double z = T[8] * p[0] + T[9] * p[1] + T[10] * p[2] + T[11];
-      const double iz = 1.0 / std::max(z, 1e-6);
-      const double X = x * iz, Y = y * iz, XY = X * Y;
-      const double fw = fx * w[i], gw = fy * w[i];
-      const double Ju[6] = {-fw * XY, fw * (1.0 + X * X), -fw * Y, fw * iz, 0.0, -fw * X * iz};
-      add(Ju, (fx * X + cx - uv[2 * i]) * w[i]);
-      const double Jv[6] = {-gw * (1.0 + Y * Y), gw * XY, gw * X, 0.0, gw * iz, -gw * Y * iz};
-      add(Jv, (fy * Y + cy - uv[2 * i + 1]) * w[i]);
-      if (stereo && stereo[i]) {
-        const double b = bf * iz * w_ur[i];
-        const double Js[6] = {-b * Y, b * X, 0.0, 0.0, 0.0, -b * iz};
-        add(Js, (bf * iz - (uv[2 * i] - ur[i])) * w_ur[i]);
-      }
-    }
-    return cost;
-  }
-};
-
-// Solves A x = b (6x6, partial pivoting); false when a pivot is exactly zero (numpy's LinAlgError).
-bool solve6(double* A, double* b, double* x) {
-  int piv[6] = {0, 1, 2, 3, 4, 5};
-  for (int c = 0; c < 6; ++c) {
-    int best = c;
-    for (int r = c + 1; r < 6; ++r)
-      if (std::abs(A[6 * piv[r] + c]) > std::abs(A[6 * piv[best] + c])) best = r;
-    std::swap(piv[c], piv[best]);
-    const double d = A[6 * piv[c] + c];
-    if (d == 0.0) return false;
-    for (int r = c + 1; r < 6; ++r) {
-      const double f = A[6 * piv[r] + c] / d;
-      for (int k = c; k < 6; ++k) A[6 * piv[r] + k] -= f * A[6 * piv[c] + k];
-      b[piv[r]] -= f * b[piv[c]];
-    }
-  }
-  for (int c = 5; c >= 0; --c) {
-    double v = b[piv[c]];
-    for (int k = c + 1; k < 6; ++k) v -= A[6 * piv[c] + k] * x[k];
-    x[c] = v / A[6 * piv[c] + c];
-  }
-  return true;
-}
-
-// T <- exp(dx) T, exp as segs.slam.optimize._se3_exp: Rodrigues rotation, first-order translation.
-void left_update(const double* dx, const double* T, double* out) {
-  const double th = std::sqrt(dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]);
-  double R[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
-  if (th >= std::numeric_limits<double>::epsilon()) {
-    const double c = std::cos(th), s = std::sin(th), c1 = 1.0 - c;
-    const double kx = dx[0] / th, ky = dx[1] / th, kz = dx[2] / th;
-    R[0] = c + c1 * kx * kx;      R[1] = c1 * kx * ky - s * kz; R[2] = c1 * kx * kz + s * ky;
-    R[3] = c1 * kx * ky + s * kz; R[4] = c + c1 * ky * ky;      R[5] = c1 * ky * kz - s * kx;
-    R[6] = c1 * kx * kz - s * ky; R[7] = c1 * ky * kz + s * kx; R[8] = c + c1 * kz * kz;
-  }
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 4; ++c)
-      out[4 * r + c] = R[3 * r] * T[c] + R[3 * r + 1] * T[4 + c] + R[3 * r + 2] * T[8 + c];
-    out[4 * r + 3] += dx[3 + r];
-  }
-  for (int c = 0; c < 4; ++c) out[12 + c] = T[12 + c];
-}
-
-// Levenberg-Marquardt as segs.slam.optimize._solve_pose: w2c [4,4], P [M,3], uv [M,2], ur [M] or
-// empty, w [M], K [3,3], stereo [M] bool or empty, w_ur [M] or empty -> w2c [4,4].
-py::array_t<double> solve_pose(Arr<double> w2c, Arr<double> P, Arr<double> uv, Arr<double> ur,
-                               Arr<double> w, Arr<double> K, double bf, Arr<bool> stereo,
-                               Arr<double> w_ur, int evaluations) {
-  const double* k = K.data();
-  PoseProblem pr{P.data(), uv.data(), ur.size() ? ur.data() : nullptr, w.data(),
-                 w_ur.size() ? w_ur.data() : nullptr, stereo.size() ? stereo.data() : nullptr,
-                 P.shape(0), k[0], k[4], k[2], k[5], bf};
-  py::array_t<double> result({4, 4});
-  double* T = result.mutable_data();
-  std::copy(w2c.data(), w2c.data() + 16, T);
-  {
-    py::gil_scoped_release release;
-    double H[36], g[6], H2[36], g2[6], A[36], b[6], dx[6], T2[16];
-    double cost = pr.system(T, H, g), lam = 1e-4;
-    for (int it = 0; it < evaluations - 1; ++it) {
-      for (int i = 0; i < 36; ++i) A[i] = H[i];
-      for (int i = 0; i < 6; ++i) {
-        A[7 * i] += lam * (H[7 * i] + 1e-12);
-        b[i] = -g[i];
-      }
-      if (!solve6(A, b, dx)) break;
-      left_update(dx, T, T2);
-      const double cost2 = pr.system(T2, H2, g2);
-      if (cost2 < cost) {
-        double dd = 0.0;
-        for (int i = 0; i < 6; ++i) dd += dx[i] * dx[i];
-        const bool stalled = cost - cost2 <= 1e-8 * cost || dd < 1e-20;
-        std::copy(T2, T2 + 16, T);
-        std::copy(H2, H2 + 36, H);
-        std::copy(g2, g2 + 6, g);
-        cost = cost2;
-        lam = std::max(lam * 0.1, 1e-10);
-        if (stalled) break;
-      } else {
-        lam *= 10.0;
-        if (lam > 1e6) break;
-      }
-    }
-  }
-  return result;
-}
-
 // One query's running k' nearest (d ascending, n their indices): cv2.batchDistance's insertion.
 inline void knn_insert(std::int32_t* d, std::int32_t* n, i64 kk, int h, i64 j) {
   if (h >= d[kk - 1]) return;
@@ -311,12 +183,13 @@ py::tuple knn_hamming(const Arr<std::uint8_t>& da, const Arr<std::uint8_t>& db, 
 
 }  // namespace
 
-void register_map_kernels(py::module_& m);  // map.cpp
+void register_map_kernels(py::module_& m);   // map.cpp
+void register_pose_kernels(py::module_& m);  // pose.cpp
 
 PYBIND11_MODULE(SEGS_EXTENSION_NAME, m) {
   m.doc() = "segs SLAM kernels: projection search, kNN, motion-only optimisation, map bookkeeping";
   m.def("best_two_in_radius", &best_two_in_radius);
-  m.def("solve_pose", &solve_pose);
   m.def("knn_hamming", &knn_hamming);
   register_map_kernels(m);
+  register_pose_kernels(m);
 }
