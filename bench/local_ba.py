@@ -54,7 +54,7 @@ def record_problems(sensor: str, frames: int) -> tuple[list, BundleAdjuster, dic
     original = optimize.BundleAdjuster.run_two_pass
 
     def spy(self, poses, fixed, points, obs, iterations, min_gain=optimize.CONVERGED_GAIN):
-        problems.append((dict(poses), set(fixed), dict(points), obs, (tuple(iterations), min_gain)))
+        problems.append((dict(poses), set(fixed), points, obs, (tuple(iterations), min_gain)))
         return original(self, poses, fixed, points, obs, iterations, min_gain)
 
     optimize.BundleAdjuster.run_two_pass = spy
@@ -94,7 +94,7 @@ def cost_at(graph, poses, new_poses, new_points) -> float:
     values = gtsam.Values()
     for k in poses:
         values.insert(optimize._X0 + int(k), optimize._pose3(new_poses[k]))
-    for p, x in new_points.items():
+    for p, x in zip(new_points.pid.tolist(), new_points.xyz):
         values.insert(optimize._L0 + int(p), np.asarray(x, np.float64))
     return graph.error(values)
 
@@ -151,14 +151,14 @@ def main() -> None:
             ba._factors(previous)
 
         add("observations", len(obs.kf))
-        add("points", len(points))
+        add("points", len(points.pid))
         add("keyframes (optimised + fixed)", len(poses))
         add("build factors + values (ms)", 1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat,
                                                          lambda: setattr(ba, "_factor_cache", NO_FACTORS)))
         add("build factors + values after the previous problem's (ms)",
             1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat, after_previous))
         graph, values = graph_of(ba, poses, fixed, points, obs)
-        order = BundleAdjuster._order(poses, np.sort(np.array(list(points))))
+        order = BundleAdjuster._order(poses, points.pid)
         add("one linearisation (ms)", 1e3 * timed(lambda: graph.linearize(values), args.repeat))
         add("one error evaluation (ms)", 1e3 * timed(lambda: graph.error(values), args.repeat))
         lin = graph.linearize(values)

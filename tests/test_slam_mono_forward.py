@@ -74,10 +74,11 @@ def test_monocular_bundle_adjustment_keeps_the_gauge_scale():
     median distance from it."""
     from segs.slam.geometry import project, transform
     from segs.slam.local_mapping import LocalMapper
+    from segs.slam.optimize import PointSet
 
     rng = np.random.default_rng(0)
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
-    points = {p: rng.uniform([-1, -1, 3], [1, 1, 6]) for p in range(50)}
+    points = PointSet(np.arange(50), rng.uniform([-1, -1, 3], [1, 1, 6], (50, 3)))
     poses = {}
     for k in range(4):
         T = np.eye(4)
@@ -88,13 +89,13 @@ def test_monocular_bundle_adjustment_keeps_the_gauge_scale():
     for k in (1, 2, 3):
         new_poses[k][:3, 3] *= 0.4
     new_poses[2][:3, 3] += 0.01
-    new_points = {p: 0.4 * x for p, x in points.items()}
-    before_uv = {k: project(K, transform(T, np.array(list(new_points.values())))) for k, T in new_poses.items()}
+    new_points = PointSet(points.pid, 0.4 * points.xyz)
+    before_uv = {k: project(K, transform(T, new_points.xyz)) for k, T in new_poses.items()}
     LocalMapper._keep_gauge_scale(poses[0], points, new_poses, new_points, {0})
-    med = lambda pts: np.median(np.linalg.norm(np.array(list(pts.values())), axis=1))  # noqa: E731
+    med = lambda pts: np.median(np.linalg.norm(pts.xyz, axis=1))  # noqa: E731
     assert med(new_points) == pytest.approx(med(points), rel=1e-12)
     for k, T in new_poses.items():
-        uv = project(K, transform(T, np.array(list(new_points.values()))))
+        uv = project(K, transform(T, new_points.xyz))
         np.testing.assert_allclose(uv, before_uv[k], atol=1e-9)
     np.testing.assert_allclose(new_poses[0], poses[0])
 
@@ -109,7 +110,7 @@ def test_monocular_local_bundle_adjustment_holds_the_scale():
     _, fixed, points, *_ = fe.mapper._build_problem(sorted(m.kfs), 0)
     assert fixed == {m.origin_kf}
     c0 = m.kfs[m.origin_kf].center
-    spread = lambda: np.median(np.linalg.norm(m.pos[list(points)] - c0, axis=1))  # noqa: E731
+    spread = lambda: np.median(np.linalg.norm(m.pos[points.pid] - c0, axis=1))  # noqa: E731
     before = spread()
     fe.mapper.global_ba(None, iterations=10)
     assert spread() == pytest.approx(before, rel=1e-6)

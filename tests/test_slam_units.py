@@ -17,7 +17,7 @@ from segs.slam.geometry import inv_se3, umeyama
 from segs.slam.initialization import MonoInitializer
 from segs.slam.matching import knn_hamming
 from segs.slam.ba_process import BundleAdjusterProcess
-from segs.slam.optimize import (BundleAdjuster, Observations, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
+from segs.slam.optimize import (BundleAdjuster, Observations, PointSet, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
                                 refine_pose)
 from segs.slam.orb import OrbFrontend
 from segs.slam.runner import run_sequence
@@ -345,7 +345,7 @@ def test_bundle_adjustment_recovers_poses_and_points(stereo):
         urs.append(uv[:, 0] - bf / z if stereo else np.full(len(P), -1.0))
     obs = Observations(np.array(kf), np.array(pid), np.concatenate(uvs), np.concatenate(urs), np.zeros(len(kf), np.int64))
     noisy = {k: T @ _pose(rng.normal(0, 0.01, 3), rng.normal(0, 0.03, 3)) if k > 1 else T for k, T in poses.items()}
-    pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(len(P))}
+    pts = PointSet(np.arange(len(P)), P + rng.normal(0, 0.05, P.shape))
     ba = BundleAdjuster(K, bf, 1.2 ** np.arange(8))
     new_poses, new_points = ba.run(noisy, {0, 1}, pts, obs, 20)
     if stereo:  # the threaded frontend's child-process variant gives the same result
@@ -355,11 +355,11 @@ def test_bundle_adjustment_recovers_poses_and_points(stereo):
         finally:
             child.close()
         assert all(np.allclose(poses2[k], new_poses[k]) for k in poses)
-        assert all(np.allclose(points2[i], new_points[i]) for i in new_points)
+        assert np.array_equal(points2.pid, new_points.pid) and np.allclose(points2.xyz, new_points.xyz)
     for k in poses:
         assert np.abs(inv_se3(new_poses[k])[:3, 3] - inv_se3(poses[k])[:3, 3]).max() < 0.01
-    err = np.array([np.linalg.norm(new_points[i] - P[i]) for i in range(len(P))])
-    err0 = np.array([np.linalg.norm(pts[i] - P[i]) for i in range(len(P))])
+    err = np.linalg.norm(new_points.xyz - P, axis=1)
+    err0 = np.linalg.norm(pts.xyz - P, axis=1)
     assert np.median(err) < 0.5 * np.median(err0)
 
 
@@ -392,6 +392,14 @@ def _mono_ba_problem(rng, n_points: int, n_kfs: int, rot: float, step: float, px
     return P, poses, Observations(kf, pid, uv, np.full(len(kf), -1.0), np.zeros(len(kf), np.int64))
 
 
+def test_point_set_rejects_unordered_ids_and_mismatched_rows():
+    PointSet(np.array([1, 4, 9]), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="ascending"):
+        PointSet(np.array([4, 1, 9]), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="xyz"):
+        PointSet(np.array([1, 4]), np.zeros((3, 3)))
+
+
 def test_bundle_adjuster_reuses_factors_only_for_equal_observations():
     rng = np.random.default_rng(3)
     P, poses, obs = _mono_ba_problem(rng, 50, 3, 0.02, 0.2, 0.3)
@@ -403,22 +411,22 @@ def test_bundle_adjuster_reuses_factors_only_for_equal_observations():
     second = ba._factors(moved)[::-1]
     assert all(second[i] is first[i] for i in range(len(kf) - 1))
     assert second[-1] is not first[-1] and np.allclose(second[-1].measured(), uv[-1] + 2.0)
-    pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(len(P))}
+    pts = PointSet(np.arange(len(P)), P + rng.normal(0, 0.05, P.shape))
     warm = ba.run(poses, {0}, pts, moved, 10)  # factors from the cache give a fresh adjuster's result
     cold = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8)).run(poses, {0}, pts, moved, 10)
     assert all(np.array_equal(warm[0][k], cold[0][k]) for k in poses)
-    assert all(np.array_equal(warm[1][i], cold[1][i]) for i in pts)
+    assert np.array_equal(warm[1].xyz, cold[1].xyz)
 
 
 def test_bundle_adjuster_min_gain_stops_the_first_pass_early():
     rng = np.random.default_rng(5)
     P, poses, obs = _mono_ba_problem(rng, 60, 4, 0.03, 0.25, 0.5)
     start = {k: T @ _pose(rng.normal(0, 0.01, 3), rng.normal(0, 0.02, 3)) if k else T for k, T in poses.items()}
-    pts = {i: P[i] + rng.normal(0, 0.1, 3) for i in range(len(P))}
+    pts = PointSet(np.arange(len(P)), P + rng.normal(0, 0.1, P.shape))
 
     def result(iterations, min_gain):
         out = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8)).run_two_pass(start, {0}, pts, obs, iterations, min_gain)
-        return np.concatenate([out[0][k].ravel() for k in poses] + [out[1][i] for i in pts])
+        return np.concatenate([out[0][k].ravel() for k in poses] + [out[1].xyz.ravel()])
 
     # no iteration can lower a positive cost by all of it: min_gain=1 stops after the first
     assert np.array_equal(result((4, 1), 1.0), result((1, 1), 1e-5))
@@ -432,21 +440,21 @@ def test_bundle_adjuster_second_pass_drops_outliers_and_keeps_orphaned_points():
     obs.uv[[0, n, 2 * n]] += [[30.0, 0.0], [-30.0, 0.0], [0.0, 30.0]]  # point 0: wrong in every view
     obs.uv[2 * n + 1] += [25.0, -25.0]  # point 1: wrong in keyframe 2 only
     start = {k: T @ _pose(rng.normal(0, 0.005, 3), rng.normal(0, 0.01, 3)) if k else T for k, T in poses.items()}
-    pts = {i: P[i] + rng.normal(0, 0.05, 3) for i in range(n)}
+    pts = PointSet(np.arange(n), P + rng.normal(0, 0.05, P.shape))
     ba = BundleAdjuster(K, 0.0, 1.2 ** np.arange(8))
     first_poses, first_pts, first_bad = ba.run_two_pass(start, {0}, pts, obs, (5, 0))
     two_poses, two_pts, bad = ba.run_two_pass(start, {0}, pts, obs, (5, 5))
     assert set(np.flatnonzero(first_bad).tolist()) >= {0, n, 2 * n, 2 * n + 1}
     assert bad.sum() <= 6 and np.array_equal(bad[[0, n, 2 * n, 2 * n + 1]], [True] * 4)
-    assert np.array_equal(two_pts[0], first_pts[0])  # no observation left: the first pass's position
+    assert np.array_equal(two_pts.xyz[0], first_pts.xyz[0])  # no observation left: the first pass's position
     # the second pass is the first pass's optimum re-optimised without its outliers
     keep = ~first_bad
     sub = Observations(obs.kf[keep], obs.pid[keep], obs.uv[keep], obs.ur[keep], obs.octave[keep])
-    ref_poses, ref_pts = ba.run(first_poses, {0}, {i: first_pts[i] for i in np.unique(sub.pid).tolist()}, sub, 5)
+    seen = np.unique(sub.pid)
+    ref_poses, ref_pts = ba.run(first_poses, {0}, PointSet(seen, first_pts.xyz[seen]), sub, 5)
     assert all(np.allclose(two_poses[k], ref_poses[k], atol=1e-9) for k in poses)
-    assert all(np.allclose(two_pts[i], ref_pts[i], atol=1e-9) for i in ref_pts)
-    chi = [ba.chi2(q, np.array([x[i] for i in sub.pid.tolist()]), sub)[1].sum() for q, x in
-           ((first_poses, first_pts), (two_poses, two_pts))]
+    assert np.allclose(two_pts.xyz[seen], ref_pts.xyz, atol=1e-9)
+    chi = [ba.chi2(q, x.xyz[sub.pid], sub)[1].sum() for q, x in ((first_poses, first_pts), (two_poses, two_pts))]
     assert chi[1] < chi[0]  # without the outliers' pull the inliers fit better
 
 

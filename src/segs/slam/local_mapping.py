@@ -18,7 +18,7 @@ from segs.slam.config import MappingConfig, MatchingConfig
 from segs.slam.map import KeyFrame, Map
 from segs.slam.native import kernels
 from segs.slam.matching import TH_LOW, match_for_triangulation, nearest_two_in_radius, unique_targets
-from segs.slam.optimize import CONVERGED_GAIN, BundleAdjuster, Observations, reproj_chi2
+from segs.slam.optimize import CONVERGED_GAIN, BundleAdjuster, Observations, PointSet, reproj_chi2
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
 from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
@@ -351,21 +351,19 @@ class LocalMapper(StateFields):
         self.ba_times.append(time.perf_counter() - t0)
 
     @staticmethod
-    def _keep_gauge_scale(fixed_w2c: np.ndarray, points: dict, new_poses: dict, new_points: dict,
+    def _keep_gauge_scale(fixed_w2c: np.ndarray, points: PointSet, new_poses: dict, new_points: PointSet,
                           fixed: set) -> None:
         """Scale new_poses / new_points (in place) about the fixed camera centre so that the
-        points' median distance from it is what it was before the BA (points: pid -> [3])."""
-        if not points:
+        points' median distance from it is what it was before the BA."""
+        if not len(points.pid):
             return
         c = cam_center(fixed_w2c)
-        ids = list(points)
-        before = np.median(np.linalg.norm(np.array([points[p] for p in ids]) - c, axis=1))
-        after = np.median(np.linalg.norm(np.array([new_points[p] for p in ids]) - c, axis=1))
+        before = np.median(np.linalg.norm(points.xyz - c, axis=1))
+        after = np.median(np.linalg.norm(new_points.xyz - c, axis=1))
         if not (before > 0 and after > 0):
             return
         s = before / after
-        for p in ids:
-            new_points[p] = c + s * (np.asarray(new_points[p]) - c)
+        new_points.xyz[:] = c + s * (new_points.xyz - c)
         for k, T in new_poses.items():
             if k not in fixed:
                 T = T.copy()
@@ -424,7 +422,8 @@ class LocalMapper(StateFields):
         rigid = (n_in == 1) & (ur >= 0) & (m.n_obs[pp] == 2)
         keep = (n_view >= 2) & ~rigid
         obs = Observations(kk[keep], pp[keep], uv[keep], ur[keep], octv[keep])
-        pts = {p: m.pos[p].copy() for p in np.unique(obs.pid).tolist()}
+        ids = np.unique(obs.pid)
+        pts = PointSet(ids, m.pos[ids])
         poses = {k: m.kfs[k].w2c.copy() for k in kfs}
         return poses, fixed, pts, obs, (kk[rigid], pp[rigid])
 
@@ -439,9 +438,9 @@ class LocalMapper(StateFields):
             if k in m.kfs and k not in fixed:
                 m.kfs[k].w2c = new_poses[k]
                 touched.append(k)
-        pids = np.array([p for p in new_points if m.valid[p]], np.int64)
-        for p in pids.tolist():
-            m.pos[p] = new_points[p]
+        ok = m.valid[new_points.pid]
+        pids = new_points.pid[ok]
+        m.pos[pids] = new_points.xyz[ok]
         m.update_geometry(pids)
         self.outbox.add_poses(self.map.keyframe_poses(touched))
 

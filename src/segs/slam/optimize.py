@@ -205,6 +205,20 @@ class Observations:
     octave: np.ndarray
 
 
+@dataclass
+class PointSet:
+    """The points of a BA problem as two arrays (not one object per point: a local window holds
+    thousands, and the child-process adjuster pickles them both ways): pid [N] int64 point ids in
+    ascending order, xyz [N,3] float64 positions."""
+
+    pid: np.ndarray
+    xyz: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.xyz.shape != (len(self.pid), 3) or (len(self.pid) > 1 and not (np.diff(self.pid) > 0).all()):
+            raise ValueError("PointSet: pid [N] ascending and unique, xyz [N,3] expected")
+
+
 _X0, _L0 = gtsam.symbol("x", 0), gtsam.symbol("l", 0)  # keys: symbol(c, j) = symbol(c, 0) + j
 
 
@@ -290,17 +304,17 @@ class BundleAdjuster:
         self._factor_cache = (keys[order], meas[order], [out[i] for i in order.tolist()])
         return out
 
-    def graph(self, poses, fixed, points, factors) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    def graph(self, poses, fixed, points: PointSet, factors) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         """The factor graph (observation factors + priors holding the fixed poses) and its
-        initial values: poses kf_id -> w2c [4,4], points pid -> [3]."""
+        initial values: poses kf_id -> w2c [4,4], points (PointSet)."""
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         for k, T in poses.items():
             values.insert(_X0 + int(k), _pose3(T))
             if k in fixed:
                 graph.add(gtsam.PriorFactorPose3(_X0 + int(k), _pose3(T), self.prior))
-        for p, x in points.items():
-            values.insert(_L0 + int(p), np.asarray(x, np.float64))
+        for key, x in zip((np.uint64(_L0) + points.pid.astype(np.uint64)).tolist(), points.xyz.astype(np.float64)):
+            values.insert(key, x)
         for f in factors:
             graph.add(f)
         return graph, values
@@ -333,21 +347,20 @@ class BundleAdjuster:
         return ({k: inv_se3(values.atPose3(_X0 + int(k)).matrix()) for k in poses},
                 gtsam.utilities.extractPoint3(values).reshape(-1, 3))
 
-    def _optimize(self, poses, fixed, points, factors, iterations, min_gain=CONVERGED_GAIN):
+    def _optimize(self, poses, fixed, points: PointSet, factors, iterations, min_gain=CONVERGED_GAIN):
         graph, values = self.graph(poses, fixed, points, factors)
-        pids = np.sort(np.fromiter(points, np.int64, len(points)))
-        result = self._lm(graph, values, self._order(poses, pids), iterations, min_gain)
+        result = self._lm(graph, values, self._order(poses, points.pid), iterations, min_gain)
         if result is None:  # keep the input
-            return dict(poses), dict(points)
+            return dict(poses), PointSet(points.pid, points.xyz.copy())
         new_poses, P = self._read(result, poses)
-        return new_poses, dict(zip(pids.tolist(), P))
+        return new_poses, PointSet(points.pid, P)
 
-    def run(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
-            obs: Observations, iterations: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
-        """Optimise poses (w2c, kf_id -> [4,4]; those in `fixed` stay) and points (pid -> [3])."""
+    def run(self, poses: dict[int, np.ndarray], fixed: set[int], points: PointSet,
+            obs: Observations, iterations: int) -> tuple[dict[int, np.ndarray], PointSet]:
+        """Optimise poses (w2c, kf_id -> [4,4]; those in `fixed` stay) and points."""
         return self._optimize(poses, fixed, points, self._factors(obs), iterations)
 
-    def run_two_pass(self, poses: dict[int, np.ndarray], fixed: set[int], points: dict[int, np.ndarray],
+    def run_two_pass(self, poses: dict[int, np.ndarray], fixed: set[int], points: PointSet,
                      obs: Observations, iterations: tuple[int, int], min_gain: float = CONVERGED_GAIN):
         """ORB-SLAM's local BA: optimise, drop the observations that fail the chi2 test, optimise
         again without them. -> (poses, points, outlier mask [O] after the last pass). Each pass
@@ -357,7 +370,7 @@ class BundleAdjuster:
         it1, it2 = (tuple(iterations) + (0,))[:2]
         factors = self._factors(obs)
         graph, values = self.graph(poses, fixed, points, factors)
-        pids = np.sort(np.fromiter(points, np.int64, len(points)))  # extractPoint3's order
+        pids = points.pid  # ascending: extractPoint3's order
         at = np.searchsorted(pids, obs.pid)  # observation -> row of pids
         result = self._lm(graph, values, self._order(poses, pids), it1, min_gain)
         result = values if result is None else result
@@ -375,7 +388,7 @@ class BundleAdjuster:
             if second is not None:
                 new_poses, P[kept] = self._read(second, poses)
                 bad = self.chi2(new_poses, P[at], obs)[0]
-        return new_poses, dict(zip(pids.tolist(), P)), bad
+        return new_poses, PointSet(pids, P), bad
 
     def chi2(self, poses: dict[int, np.ndarray], points: np.ndarray, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
         """Outlier test per observation: (chi2 > threshold or behind the camera) [O] bool, chi2 [O].
