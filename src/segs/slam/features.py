@@ -147,7 +147,7 @@ class OrbExtractor:
         kps = self._detect(gray)
         if not kps:
             return empty_keypoints()
-        uv, octave, _, resp = _keypoint_arrays(kps)
+        uv, octave, resp = _keypoint_arrays(kps, angle=False)
         keep = self._distribute(uv, octave, resp)
         kps, desc = self._orbs[0].compute(gray, [kps[i] for i in keep.tolist()])
         if not kps or desc is None:
@@ -174,12 +174,16 @@ class OrbExtractor:
         return np.sort(sel)
 
 
-def _keypoint_arrays(kps: list) -> tuple[np.ndarray, ...]:
-    """OpenCV keypoints -> (uv [N,2] float64, octave [N] int64, angle [N] float32, response [N]
-    float32): one C++ conversion for the positions, generators into arrays for the rest."""
+def _keypoint_arrays(kps: list, angle: bool = True) -> tuple[np.ndarray, ...]:
+    """OpenCV keypoints -> (uv [N,2] float64, octave [N] int64, angle [N] float32 (left out when
+    not angle), response [N] float32): one C++ conversion for the positions, generators into
+    arrays for the rest (Python attribute reads, under the interpreter lock: only those needed)."""
     n = len(kps)
-    return (cv2.KeyPoint_convert(kps).astype(np.float64), np.fromiter((k.octave for k in kps), np.int64, n),
-            np.fromiter((k.angle for k in kps), np.float32, n), np.fromiter((k.response for k in kps), np.float32, n))
+    uv, octave = cv2.KeyPoint_convert(kps).astype(np.float64), np.fromiter((k.octave for k in kps), np.int64, n)
+    resp = np.fromiter((k.response for k in kps), np.float32, n)
+    if not angle:
+        return uv, octave, resp
+    return uv, octave, np.fromiter((k.angle for k in kps), np.float32, n), resp
 
 
 def to_gray(rgb: np.ndarray) -> np.ndarray:
