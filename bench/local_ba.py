@@ -135,6 +135,7 @@ def main() -> None:
                 ("BundleAdjuster.run_two_pass, LM 5 + 10 (the former default)", ((5, 10), tol, gtsam_lam)),
                 ("BundleAdjuster.run_two_pass, the configured iterations, min_gain", (None, None, gtsam_lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 4), tol, lam)),
+                ("BundleAdjuster.run_two_pass, LM, min_gain", ((4, 1), 0.01, lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol, lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((2, 1), tol, gtsam_lam)),
                 ("BundleAdjuster.run_two_pass, LM, min_gain", ((1, 1), tol, lam)),
