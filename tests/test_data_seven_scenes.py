@@ -151,3 +151,37 @@ def test_calibrated_registration_aligns_depth_edges_with_colour_edges(seven_scen
     published = _edge_agreement(SevenScenesSequence(seven_scenes_root, intrinsics=[585, 585, 320, 240],
                                                      depth_to_color=[0] * 6), frames)
     assert calibrated > 1.08 * published, (calibrated, published)
+
+
+_FAULTS = """
+import resource, sys, threading
+from segs.data.seven_scenes import SevenScenesSequence
+seq = SevenScenesSequence(sys.argv[1])
+seq[0]
+def read():
+    for i in range(1, 31):
+        seq[i]
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+t = threading.Thread(target=read)
+t.start()
+t.join()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc's allocator settings")
+def test_frames_read_in_a_thread_reuse_freed_memory(seven_scenes_root):
+    """Importing segs keeps freed heap memory for the next frame (mallopt): reading real frames in
+    a thread, as the frame source does, costs a fraction of the page faults it costs with glibc's
+    defaults (SEGS_MALLOC=default), where each frame's large buffers are fresh mappings."""
+    import os
+    import subprocess
+    import sys
+
+    def faults(**env) -> int:
+        out = subprocess.run([sys.executable, "-c", _FAULTS, str(seven_scenes_root)], capture_output=True, text=True,
+                             env={**os.environ, **env}, check=True)
+        return int(out.stdout.split()[-1])
+
+    kept, default = faults(), faults(SEGS_MALLOC="default")
+    assert kept < 0.3 * default, (kept, default)
