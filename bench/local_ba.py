@@ -37,10 +37,9 @@ import numpy as np
 
 from segs.config import compose, instantiate, make_sequence
 from segs.slam import optimize
-from segs.slam.optimize import BundleAdjuster
+from segs.slam.optimize import NO_FACTORS, BundleAdjuster
 
 ROOT = Path(__file__).resolve().parents[1]
-NO_FACTORS = (np.zeros(0, np.int64), np.zeros((0, 4)), [])  # an empty BundleAdjuster factor cache
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
 
 

@@ -305,9 +305,13 @@ def test_native_map_bookkeeping_equals_python():
     assert counted > 0
     pids = np.flatnonzero(m.valid)
     m.ref_kf[pids[::7]] = kfs[2]  # points whose reference keyframe is gone
-    for x, y in zip(m._observers(pids, native=True), m._observers(pids, native=False)):
+    for x, y in zip(m.observers(pids, native=True), m.observers(pids, native=False)):
         assert np.array_equal(x, y)
-    assert (m._observers(pids)[2] == -1).sum() >= len(pids[::7])
+    assert (m.observers(pids)[2] == -1).sum() >= len(pids[::7])
+    for k in list(m.kfs)[:4]:
+        lacks = m.unobserved_by(pids, k, native=True)
+        assert np.array_equal(lacks, m.unobserved_by(pids, k, native=False))
+        assert np.array_equal(~lacks, np.isin(pids, m.kfs[k].points)) and 0 < lacks.sum() < len(pids)
     before = m.desc.copy()
     m.update_descriptors(pids, native=False)
     want = m.desc.copy()

@@ -257,7 +257,7 @@ class LocalMapper(StateFields):
         """
         m = self.map
         pids = pids[m.valid[pids]]
-        pids = np.array([p for p in pids.tolist() if kf.kf_id not in m.obs[p]], np.int64)
+        pids = pids[m.unobserved_by(pids, kf.kf_id)]
         if len(pids) == 0:
             return 0
         w2c = S if S is not None else kf.w2c
@@ -389,12 +389,11 @@ class LocalMapper(StateFields):
         if len(local) == 0:
             return None
         wset = set(window)
-        counts: dict[int, int] = {}
-        for p in local.tolist():
-            for k in m.obs[p]:
-                if k not in wset and k in m.kfs:
-                    counts[k] = counts.get(k, 0) + 1
-        fixed_ids = sorted(counts, key=lambda k: (-counts[k], k))[:fixed_max] if fixed_max else []
+        fixed_ids = []
+        if fixed_max:  # the outside keyframes seeing most local points (ties: lower id first)
+            kfid = m.observers(local)[1]
+            out, counts = np.unique(kfid[~np.isin(kfid, window)], return_counts=True)
+            fixed_ids = out[np.lexsort((out, -counts))][:fixed_max].tolist()
         fixed = set(fixed_ids)
         if m.origin_kf in wset:
             fixed.add(m.origin_kf)

@@ -223,7 +223,7 @@ class Map:
         pids = np.asarray(pids, np.int64)
         if len(pids) == 0:
             return
-        owner, kfid, refs = self._observers(pids)
+        owner, kfid, refs = self.observers(pids)
         if not len(owner):
             return
         ids, inv = np.unique(kfid, return_inverse=True)
@@ -245,7 +245,15 @@ class Map:
             self.dmax[sel] = dist * self.scales[refs[ok]]
             self.dmin[sel] = self.dmax[sel] / self.scales[-1]
 
-    def _observers(self, pids: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def unobserved_by(self, pids: np.ndarray, kf_id: int, native: bool = True) -> np.ndarray:
+        """Which of the points pids [P] keyframe kf_id does not observe -> [P] bool (the C++ loop
+        where built)."""
+        ext = kernels() if native else None
+        if ext is not None:
+            return ext.unobserved_by([self.obs[p] for p in pids.tolist()], int(kf_id))
+        return np.fromiter((kf_id not in self.obs[p] for p in pids.tolist()), bool, len(pids))
+
+    def observers(self, pids: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Observations of points pids [P] by keyframes of the map -> (row in pids [O], keyframe
         id [O]) in dict order, and per point the octave of its reference keyframe's observation
         [P] (-1: that keyframe is gone or does not see it). native: the C++ loop where built."""

@@ -219,6 +219,7 @@ class PointSet:
             raise ValueError("PointSet: pid [N] ascending and unique, xyz [N,3] expected")
 
 
+NO_FACTORS = (np.zeros(0, np.int64), np.zeros((0, 4)), np.empty(0, object))  # an empty factor cache
 _X0, _L0 = gtsam.symbol("x", 0), gtsam.symbol("l", 0)  # keys: symbol(c, j) = symbol(c, 0) + j
 
 
@@ -270,11 +271,11 @@ class BundleAdjuster:
         self.noise2 = [robust(2, s, CHI2_MONO) for s in scales]
         self.noise3 = [robust(3, s, CHI2_STEREO) for s in scales]
         self.prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-        # the last call's factors, see _factors: (keys [F] sorted, measurements [F,4], factors)
-        self._factor_cache: tuple[np.ndarray, np.ndarray, list] = (np.zeros(0, np.int64), np.zeros((0, 4)), [])
+        # the last call's factors, see _factors: (keys [F] sorted, measurements [F,4], factors [F] object)
+        self._factor_cache: tuple[np.ndarray, np.ndarray, np.ndarray] = NO_FACTORS
 
-    def _factors(self, obs: Observations) -> list:
-        """One gtsam factor per observation (stereo / RGB-D when ur >= 0, else monocular).
+    def _factors(self, obs: Observations) -> np.ndarray:
+        """One gtsam factor per observation (stereo / RGB-D when ur >= 0, else monocular) -> [O] object.
 
         Factors are immutable, and consecutive local BAs share most observations: a factor of
         the previous call is reused where keyframe, point and measurement are the same, and only
@@ -282,13 +283,13 @@ class BundleAdjuster:
         keys = (obs.kf.astype(np.int64) << 32) | obs.pid.astype(np.int64)
         meas = np.column_stack([obs.uv, obs.ur, obs.octave]).astype(np.float64)
         prev_keys, prev_meas, prev_factors = self._factor_cache
-        hit = np.full(len(keys), -1, np.int64)
+        out = np.empty(len(keys), object)
+        same = np.zeros(len(keys), bool)
         if len(prev_keys):
             pos = np.minimum(np.searchsorted(prev_keys, keys), len(prev_keys) - 1)
             same = (prev_keys[pos] == keys) & (prev_meas[pos] == meas).all(axis=1)
-            hit[same] = pos[same]
-        out = [prev_factors[i] if i >= 0 else None for i in hit.tolist()]
-        miss = np.flatnonzero(hit < 0)
+            out[same] = prev_factors[pos[same]]
+        miss = np.flatnonzero(~same)
         if len(miss):
             stereo, mono = gtsam.GenericStereoFactor3D, gtsam.GenericProjectionFactorCal3_S2
             n3, n2, cal_st, cal = self.noise3, self.noise2, self.cal_st, self.cal
@@ -301,7 +302,7 @@ class BundleAdjuster:
                 else:
                     out[i] = mono(np.array((u, v)), n2[o], x, lm, cal)
         order = np.argsort(keys, kind="stable")
-        self._factor_cache = (keys[order], meas[order], [out[i] for i in order.tolist()])
+        self._factor_cache = (keys[order], meas[order], out[order])
         return out
 
     def graph(self, poses, fixed, points: PointSet, factors) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:

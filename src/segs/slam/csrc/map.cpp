@@ -162,7 +162,25 @@ py::tuple distinctive_descriptors(const py::list& obs, const py::dict& descs) {
 
 }  // namespace
 
+// Local mapping's fusion candidates: which points obs[j] (dicts {kf id: keypoint index}) keyframe
+// `kf` does not observe -> [N] bool.
+py::array_t<bool> unobserved_by(const py::list& obs, i64 kf) {
+  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+  py::array_t<bool> out(n);
+  bool* o = out.mutable_data();
+  const py::int_ key(kf);
+  for (py::ssize_t j = 0; j < n; ++j) {
+    PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
+    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    const int has = PyDict_Contains(d, key.ptr());
+    if (has < 0) throw py::error_already_set();
+    o[j] = has == 0;
+  }
+  return out;
+}
+
 void register_map_kernels(py::module_& m) {
+  m.def("unobserved_by", &unobserved_by);
   m.def("redundant_points", &redundant_points);
   m.def("gather_observers", &gather_observers);
   m.def("distinctive_descriptors", &distinctive_descriptors);
