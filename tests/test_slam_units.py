@@ -312,6 +312,10 @@ def test_native_map_bookkeeping_equals_python():
         lacks = m.unobserved_by(pids, k, native=True)
         assert np.array_equal(lacks, m.unobserved_by(pids, k, native=False))
         assert np.array_equal(~lacks, np.isin(pids, m.kfs[k].points)) and 0 < lacks.sum() < len(pids)
+        for ex in (k, -1):
+            shared = m.count_observers(m.kf_point_ids(m.kfs[k])[1], ex, native=True)
+            want = m.count_observers(m.kf_point_ids(m.kfs[k])[1], ex, native=False)
+            assert list(shared.items()) == list(want.items()) and shared and (k in shared) == (ex == -1)
     before = m.desc.copy()
     m.update_descriptors(pids, native=False)
     want = m.desc.copy()

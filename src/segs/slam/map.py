@@ -346,14 +346,23 @@ class Map:
         ok = self.valid[pid]
         return idx[ok], pid[ok]
 
+    def count_observers(self, pids: np.ndarray, exclude: int = -1, native: bool = True) -> dict[int, int]:
+        """Keyframe id (other than exclude) -> how many of the points pids [P] it observes, in
+        first-seen order (the C++ loop where built)."""
+        ext = kernels() if native else None
+        if ext is not None:
+            keys, cnt = ext.count_observers([self.obs[p] for p in pids.tolist()], int(exclude))
+            return dict(zip(keys.tolist(), cnt.tolist()))
+        counts: dict[int, int] = {}
+        for pid in pids.tolist():
+            for k in self.obs[pid]:
+                if k != exclude:
+                    counts[k] = counts.get(k, 0) + 1
+        return counts
+
     def update_connections(self, kf: KeyFrame, th: int = 15) -> None:
         """Covisibility weights (shared points) with every keyframe; spanning-tree parent."""
-        counts: dict[int, int] = {}
-        _, pids = self.kf_point_ids(kf)
-        for pid in pids:
-            for k in self.obs[pid]:
-                if k != kf.kf_id:
-                    counts[k] = counts.get(k, 0) + 1
+        counts = self.count_observers(self.kf_point_ids(kf)[1], kf.kf_id)
         counts = {k: c for k, c in counts.items() if k in self.kfs and not self.kfs[k].bad}
         if not counts:
             return

@@ -373,11 +373,7 @@ class Tracker(StateFields):
         m = self.map
         pids = frame.points[(frame.points >= 0) & ~frame.outlier]
         pids = pids[m.valid[pids]]
-        votes: dict[int, int] = {}
-        for p in pids.tolist():
-            for k in m.obs[p]:
-                votes[k] = votes.get(k, 0) + 1
-        votes = {k: v for k, v in votes.items() if k in m.kfs}
+        votes = {k: v for k, v in m.count_observers(pids).items() if k in m.kfs}
         if not votes:
             return
         self.ref_kf = max(votes, key=lambda k: (votes[k], k))

@@ -179,7 +179,38 @@ py::array_t<bool> unobserved_by(const py::list& obs, i64 kf) {
   return out;
 }
 
+// Map.update_connections: how many of the points obs[j] (dicts {kf id: keypoint index}) each
+// keyframe other than `exclude` observes -> (keyframe ids [K] in first-seen order, counts [K]).
+py::tuple count_observers(const py::list& obs, i64 exclude) {
+  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+  std::vector<i64> keys, counts;
+  std::unordered_map<i64, std::size_t> at;
+  for (py::ssize_t j = 0; j < n; ++j) {
+    PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
+    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    PyObject *key, *value;
+    Py_ssize_t pos = 0;
+    while (PyDict_Next(d, &pos, &key, &value)) {
+      const i64 k = as_int(key);
+      if (k == exclude) continue;
+      auto it = at.find(k);
+      if (it == at.end()) {
+        at.emplace(k, keys.size());
+        keys.push_back(k);
+        counts.push_back(1);
+      } else {
+        ++counts[it->second];
+      }
+    }
+  }
+  py::array_t<i64> a(static_cast<py::ssize_t>(keys.size())), b(static_cast<py::ssize_t>(counts.size()));
+  std::copy(keys.begin(), keys.end(), a.mutable_data());
+  std::copy(counts.begin(), counts.end(), b.mutable_data());
+  return py::make_tuple(a, b);
+}
+
 void register_map_kernels(py::module_& m) {
+  m.def("count_observers", &count_observers);
   m.def("unobserved_by", &unobserved_by);
   m.def("redundant_points", &redundant_points);
   m.def("gather_observers", &gather_observers);
