@@ -663,3 +663,25 @@ def test_frame_poses_follow_their_keyframe_and_read_the_legacy_tuples():
     assert all(np.array_equal(legacy.trajectory(kf_w2c.get)[i], traj[i]) for i in traj)
     del kf_w2c[1]
     assert sorted(poses.trajectory(kf_w2c.get)) == [7]  # a keyframe unknown to the map: its frames left out
+
+
+def test_keypoint_depth_lookup_is_the_3x3_dilation_and_erosion_test():
+    """FrameBuilder._lookup_depth (3x3 neighbourhoods gathered at the keypoints) against the
+    whole-image dilation / erosion it replaces, with holes, depth edges and image borders."""
+    import cv2
+
+    from segs.slam.frame import FrameBuilder
+
+    rng = np.random.default_rng(5)
+    depth = (2.0 + 0.002 * np.arange(64) + rng.uniform(0, 0.01, (48, 64))).astype(np.float32)  # a slanted wall
+    depth[rng.random(depth.shape) < 0.02] = 0.0  # holes
+    depth[:, 30:] += 0.5  # an occluding edge
+    uv = np.r_[rng.uniform(-2, 66, (400, 2)) * [1, 0.75], [[0, 0], [63, 47], [63.4, 0.2], [-0.6, 47.6]]]
+    k = np.ones((3, 3), np.uint8)
+    x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, 63)
+    y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, 47)
+    want = depth[y, x].astype(np.float64)
+    hi, lo = cv2.dilate(depth, k)[y, x], cv2.erode(depth, k)[y, x]
+    want[(lo <= 0) | (hi - lo > 0.05 * want)] = 0.0
+    got = FrameBuilder._lookup_depth(depth, uv, 0.05)
+    assert np.array_equal(got, want) and 0 < (got > 0).sum() < len(uv)

@@ -128,3 +128,16 @@ def test_cli_trains_and_reports_bad_input_in_one_line(images, tmp_path, capsys):
         err = capsys.readouterr().err
         assert e.value.code == 2 and err.startswith("error: ") and err.count("\n") == 1
     assert not (tmp_path / "never.npz").exists()
+
+
+def test_native_words_equal_the_numpy_descent(images):
+    """The C++ tree descent gives numpy's words, ties included (random descriptors tie often)."""
+    from segs.slam.native import kernels
+
+    if kernels() is None:
+        pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
+    voc = Vocabulary.load()
+    real = OrbExtractor(500).extract(cv2.imread(str(images[0]), cv2.IMREAD_GRAYSCALE)).desc
+    rand = np.random.default_rng(0).integers(0, 256, (2000, 32), dtype=np.uint8)
+    for desc in (real, rand, rand[:0]):
+        assert np.array_equal(voc.words(desc, native=True), voc.words(desc, native=False))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from segs.data.frame import Camera, Frame
@@ -136,10 +135,10 @@ class FrameBuilder:
         x = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
         y = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
         d = depth[y, x].astype(np.float64)
-        if edge_ratio > 0:
-            k = np.ones((3, 3), np.uint8)
-            hi = cv2.dilate(depth, k)[y, x]
-            lo = cv2.erode(depth, k)[y, x]
+        if edge_ratio > 0:  # the 3x3 neighbourhoods inside the image (a 3x3 dilation / erosion's)
+            step = np.arange(-1, 2)
+            nb = depth[np.clip(y[:, None] + step, 0, h - 1)[:, :, None], np.clip(x[:, None] + step, 0, w - 1)[:, None, :]]
+            hi, lo = nb.max(axis=(1, 2)), nb.min(axis=(1, 2))  # [N,3,3] -> [N]
             d[(lo <= 0) | (hi - lo > edge_ratio * d)] = 0.0
         return d
 

@@ -34,6 +34,7 @@ import numpy as np
 from segs.errors import ConfigError, DataError, UserInputError
 from segs.slam.config import FeatureConfig
 from segs.slam.features import hamming_matrix
+from segs.slam.native import kernels
 
 DEFAULT_PATH = Path(__file__).with_name("vocab") / "orb_k10_l4.npz"
 
@@ -169,8 +170,12 @@ class Vocabulary:
         return cls(k, levels, idf)
 
     # --------------------------------------------------------------- transform
-    def words(self, desc: np.ndarray) -> np.ndarray:
-        """Word id per descriptor [N,32] -> [N] int64 (greedy descent of the tree)."""
+    def words(self, desc: np.ndarray, native: bool = True) -> np.ndarray:
+        """Word id per descriptor [N,32] -> [N] int64 (greedy descent of the tree; the C++ loop
+        where built)."""
+        ext = kernels() if native else None
+        if ext is not None:
+            return ext.tree_words(np.ascontiguousarray(desc, np.uint8).reshape(-1, 32), self.levels, self.k)
         d64 = np.ascontiguousarray(desc).view(np.uint64)  # [N,4]
         node = np.zeros(len(desc), np.int64)
         for c in self._lv64:

@@ -16,6 +16,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <stdexcept>
 #include <vector>
 
 namespace py = pybind11;
@@ -181,6 +182,43 @@ py::tuple knn_hamming(const Arr<std::uint8_t>& da, const Arr<std::uint8_t>& db, 
   return py::make_tuple(dist, idx);
 }
 
+// Vocabulary.words: the greedy descent of a k-ary tree of ORB centres (levels[l]: [k^(l+1),32],
+// the children of node n in rows n*k .. n*k+k-1); at each level the child of least Hamming
+// distance, the first on ties (numpy's argmin) -> word id per descriptor of desc [N,32].
+py::array_t<i64> tree_words(const Arr<std::uint8_t>& desc, const py::list& levels, i64 k) {
+  const i64 n = desc.ndim() == 2 ? desc.shape(0) : 0;
+  if (desc.ndim() != 2 || desc.shape(1) != 32) throw std::invalid_argument("desc: [N,32] uint8 expected");
+  std::vector<Arr<std::uint8_t>> lv;
+  i64 rows = 1;
+  for (auto c : levels) {
+    lv.push_back(c.cast<Arr<std::uint8_t>>());
+    rows *= k;
+    if (lv.back().ndim() != 2 || lv.back().shape(0) != rows || lv.back().shape(1) != 32)
+      throw std::invalid_argument("levels: [k^l,32] uint8 centres expected");
+  }
+  py::array_t<i64> out(n);
+  i64* o = out.mutable_data();
+  const std::uint8_t* d = desc.data();
+  std::vector<const std::uint8_t*> c;
+  for (const auto& a : lv) c.push_back(a.data());
+  py::gil_scoped_release release;
+  for (i64 i = 0; i < n; ++i) {
+    i64 node = 0;
+    for (const std::uint8_t* centres : c) {
+      const std::uint8_t* child = centres + node * k * 32;
+      int best = std::numeric_limits<int>::max();
+      i64 arg = 0;
+      for (i64 j = 0; j < k; ++j) {
+        const int h = hamming32(d + 32 * i, child + 32 * j);
+        if (h < best) best = h, arg = j;
+      }
+      node = node * k + arg;
+    }
+    o[i] = node;
+  }
+  return out;
+}
+
 }  // namespace
 
 void register_map_kernels(py::module_& m);   // map.cpp
@@ -190,6 +228,7 @@ PYBIND11_MODULE(SEGS_EXTENSION_NAME, m) {
   m.doc() = "segs SLAM kernels: projection search, kNN, motion-only optimisation, map bookkeeping";
   m.def("best_two_in_radius", &best_two_in_radius);
   m.def("knn_hamming", &knn_hamming);
+  m.def("tree_words", &tree_words);
   register_map_kernels(m);
   register_pose_kernels(m);
 }
