@@ -97,7 +97,8 @@ class DepthRegistration:
             return depth  # already registered (same camera)
         out = cv2.registerDepth(self.K_depth, color.K, None, self.T, np.ascontiguousarray(depth, np.float32),
                                 (color.width, color.height))
-        return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+        cv2.patchNaNs(out, 0.0)  # float images mark "no depth" with NaN (in place: 0.06 ms, nan_to_num 0.7)
+        return out
 
     def color_poses(self, depth_c2w: np.ndarray) -> np.ndarray:
         """Camera-to-world poses of the depth camera [N,4,4] -> those of the colour camera [N,4,4]."""
