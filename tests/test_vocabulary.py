@@ -88,6 +88,10 @@ def test_database_query_ranks_the_same_view_first(images):
     assert db.query(bows[1], n=1)[0][0] == 0  # the neighbouring frame finds its place
     assert 0 not in [k for k, _ in db.query(bows[0], exclude={0})]
     assert res[1][1] == pytest.approx(bow_score(bows[0], bows[res[1][0]]))
+    for ex in (set(), {10}, {0, 10, 20}):  # the C++ count through the inverted index, in the same order
+        got = db.common_words(bows[1], ex, native=True)
+        assert list(got.items()) == list(db.common_words(bows[1], ex, native=False).items())
+        assert set(got) == {0, 10, 20} - ex and all(c > 0 for c in got.values())
     db.erase(0)
     assert 0 not in [k for k, _ in db.query(bows[0])]
 

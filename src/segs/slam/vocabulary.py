@@ -234,7 +234,14 @@ class KeyFrameDatabase:
             for w in bow[0].tolist():
                 self.index.get(w, set()).discard(kf_id)
 
-    def common_words(self, bow: tuple[np.ndarray, np.ndarray], exclude: set[int]) -> dict[int, int]:
+    def common_words(self, bow: tuple[np.ndarray, np.ndarray], exclude: set[int],
+                     native: bool = True) -> dict[int, int]:
+        """Keyframe id (not in exclude) -> how many of bow's words it has, first-seen order (the C++
+        loop where built)."""
+        ext = kernels() if native else None
+        if ext is not None:
+            keys, cnt = ext.common_words(np.ascontiguousarray(bow[0], np.int64), self.index, set(exclude))
+            return dict(zip(keys.tolist(), cnt.tolist()))
         counts: dict[int, int] = {}
         for w in bow[0].tolist():
             for k in self.index.get(w, ()):

@@ -209,7 +209,44 @@ py::tuple count_observers(const py::list& obs, i64 exclude) {
   return py::make_tuple(a, b);
 }
 
+// KeyFrameDatabase.common_words: through the inverted index {word: set of keyframe ids}, how many
+// of `words` each keyframe not in `exclude` shares -> (keyframe ids [K] in first-seen order, counts [K]).
+py::tuple common_words(const Arr<i64>& words, const py::dict& index, const py::set& exclude) {
+  std::vector<i64> keys, counts;
+  std::unordered_map<i64, std::size_t> at;
+  const i64* w = words.data();
+  for (py::ssize_t i = 0; i < words.size(); ++i) {
+    const py::int_ word(w[i]);
+    PyObject* kfs = PyDict_GetItemWithError(index.ptr(), word.ptr());  // borrowed
+    if (kfs == nullptr) {
+      if (PyErr_Occurred()) throw py::error_already_set();
+      continue;
+    }
+    py::iterator it = py::reinterpret_borrow<py::iterable>(kfs).begin();
+    for (; it != py::iterator::sentinel(); ++it) {
+      PyObject* item = (*it).ptr();
+      const int skip = PySet_Contains(exclude.ptr(), item);
+      if (skip < 0) throw py::error_already_set();
+      if (skip) continue;
+      const i64 k = as_int(item);
+      auto found = at.find(k);
+      if (found == at.end()) {
+        at.emplace(k, keys.size());
+        keys.push_back(k);
+        counts.push_back(1);
+      } else {
+        ++counts[found->second];
+      }
+    }
+  }
+  py::array_t<i64> a(static_cast<py::ssize_t>(keys.size())), b(static_cast<py::ssize_t>(counts.size()));
+  std::copy(keys.begin(), keys.end(), a.mutable_data());
+  std::copy(counts.begin(), counts.end(), b.mutable_data());
+  return py::make_tuple(a, b);
+}
+
 void register_map_kernels(py::module_& m) {
+  m.def("common_words", &common_words);
   m.def("count_observers", &count_observers);
   m.def("unobserved_by", &unobserved_by);
   m.def("redundant_points", &redundant_points);
