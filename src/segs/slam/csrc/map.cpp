@@ -179,12 +179,37 @@ py::array_t<bool> unobserved_by(const py::list& obs, i64 kf) {
   return out;
 }
 
+// Counts per keyframe id in first-seen order (the order of the Python dict the callers build).
+class FirstSeenCounter {
+ public:
+  void add(i64 k) {
+    auto it = at_.find(k);
+    if (it == at_.end()) {
+      at_.emplace(k, keys_.size());
+      keys_.push_back(k);
+      counts_.push_back(1);
+    } else {
+      ++counts_[it->second];
+    }
+  }
+  // -> (ids [K], counts [K]) as int64 arrays
+  py::tuple arrays() const {
+    py::array_t<i64> a(static_cast<py::ssize_t>(keys_.size())), b(static_cast<py::ssize_t>(counts_.size()));
+    std::copy(keys_.begin(), keys_.end(), a.mutable_data());
+    std::copy(counts_.begin(), counts_.end(), b.mutable_data());
+    return py::make_tuple(a, b);
+  }
+
+ private:
+  std::vector<i64> keys_, counts_;
+  std::unordered_map<i64, std::size_t> at_;
+};
+
 // Map.update_connections: how many of the points obs[j] (dicts {kf id: keypoint index}) each
 // keyframe other than `exclude` observes -> (keyframe ids [K] in first-seen order, counts [K]).
 py::tuple count_observers(const py::list& obs, i64 exclude) {
   const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
-  std::vector<i64> keys, counts;
-  std::unordered_map<i64, std::size_t> at;
+  FirstSeenCounter counter;
   for (py::ssize_t j = 0; j < n; ++j) {
     PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
     if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
@@ -192,28 +217,16 @@ py::tuple count_observers(const py::list& obs, i64 exclude) {
     Py_ssize_t pos = 0;
     while (PyDict_Next(d, &pos, &key, &value)) {
       const i64 k = as_int(key);
-      if (k == exclude) continue;
-      auto it = at.find(k);
-      if (it == at.end()) {
-        at.emplace(k, keys.size());
-        keys.push_back(k);
-        counts.push_back(1);
-      } else {
-        ++counts[it->second];
-      }
+      if (k != exclude) counter.add(k);
     }
   }
-  py::array_t<i64> a(static_cast<py::ssize_t>(keys.size())), b(static_cast<py::ssize_t>(counts.size()));
-  std::copy(keys.begin(), keys.end(), a.mutable_data());
-  std::copy(counts.begin(), counts.end(), b.mutable_data());
-  return py::make_tuple(a, b);
+  return counter.arrays();
 }
 
 // KeyFrameDatabase.common_words: through the inverted index {word: set of keyframe ids}, how many
 // of `words` each keyframe not in `exclude` shares -> (keyframe ids [K] in first-seen order, counts [K]).
 py::tuple common_words(const Arr<i64>& words, const py::dict& index, const py::set& exclude) {
-  std::vector<i64> keys, counts;
-  std::unordered_map<i64, std::size_t> at;
+  FirstSeenCounter counter;
   const i64* w = words.data();
   for (py::ssize_t i = 0; i < words.size(); ++i) {
     const py::int_ word(w[i]);
@@ -227,22 +240,10 @@ py::tuple common_words(const Arr<i64>& words, const py::dict& index, const py::s
       PyObject* item = (*it).ptr();
       const int skip = PySet_Contains(exclude.ptr(), item);
       if (skip < 0) throw py::error_already_set();
-      if (skip) continue;
-      const i64 k = as_int(item);
-      auto found = at.find(k);
-      if (found == at.end()) {
-        at.emplace(k, keys.size());
-        keys.push_back(k);
-        counts.push_back(1);
-      } else {
-        ++counts[found->second];
-      }
+      if (!skip) counter.add(as_int(item));
     }
   }
-  py::array_t<i64> a(static_cast<py::ssize_t>(keys.size())), b(static_cast<py::ssize_t>(counts.size()));
-  std::copy(keys.begin(), keys.end(), a.mutable_data());
-  std::copy(counts.begin(), counts.end(), b.mutable_data());
-  return py::make_tuple(a, b);
+  return counter.arrays();
 }
 
 void register_map_kernels(py::module_& m) {
