@@ -240,7 +240,8 @@ class KeyFrameDatabase:
         loop where built)."""
         ext = kernels() if native else None
         if ext is not None:
-            keys, cnt = ext.common_words(np.ascontiguousarray(bow[0], np.int64), self.index, set(exclude))
+            keys, cnt = ext.common_words(np.ascontiguousarray(bow[0], np.int64), self.index,
+                                         exclude if isinstance(exclude, (set, frozenset)) else set(exclude))
             return dict(zip(keys.tolist(), cnt.tolist()))
         counts: dict[int, int] = {}
         for w in bow[0].tolist():
@@ -253,7 +254,7 @@ class KeyFrameDatabase:
               exclude: set[int] = frozenset()) -> list[tuple[int, float]]:
         """DBoW2's database query: the n keyframes of best score with bow (sharing a word, not in
         exclude) -> [(kf_id, score)], best first (ties by id)."""
-        scored = [(k, bow_score(bow, self.bows[k])) for k in self.common_words(bow, set(exclude))]
+        scored = [(k, bow_score(bow, self.bows[k])) for k in self.common_words(bow, exclude)]
         return sorted(scored, key=lambda t: (-t[1], t[0]))[:n]
 
     def candidates(self, bow: tuple[np.ndarray, np.ndarray], exclude: set[int], min_score: float,

@@ -225,7 +225,8 @@ py::tuple count_observers(const py::list& obs, i64 exclude) {
 
 // KeyFrameDatabase.common_words: through the inverted index {word: set of keyframe ids}, how many
 // of `words` each keyframe not in `exclude` shares -> (keyframe ids [K] in first-seen order, counts [K]).
-py::tuple common_words(const Arr<i64>& words, const py::dict& index, const py::set& exclude) {
+py::tuple common_words(const Arr<i64>& words, const py::dict& index, const py::object& exclude) {
+  if (!PyAnySet_Check(exclude.ptr())) throw std::invalid_argument("exclude: a set or frozenset expected");
   FirstSeenCounter counter;
   const i64* w = words.data();
   for (py::ssize_t i = 0; i < words.size(); ++i) {
