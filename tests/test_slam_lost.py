@@ -41,7 +41,8 @@ def test_blank_start_and_relocalization_without_restart():
 def test_depth_poor_start_waits_init_wait_frames_then_starts_with_fewer_points():
     """Depth only in the left 30 % of every image (about 360-470 keypoints with depth, under
     min_init_points = 500): the map starts after init_wait frames with min_init_points_late
-    and the frames after it are tracked; with the late minimum at 500 nothing ever starts."""
+    and the frames after it are tracked; with the late minimum at 500 (and no two-view start)
+    nothing ever starts."""
     from dataclasses import replace
 
     seq = SyntheticSequence(sensor="rgbd", n_frames=24, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
@@ -54,7 +55,8 @@ def test_depth_poor_start_waits_init_wait_frames_then_starts_with_fewer_points()
 
     frames = [depth_poor(i) for i in range(len(seq))]
     for late, first in ((150, 10), (500, None)):
-        fe = OrbFrontend(seq.camera, "rgbd", tracking={"init_wait": 10, "min_init_points_late": late})
+        fe = OrbFrontend(seq.camera, "rgbd", tracking={"init_wait": 10, "min_init_points_late": late},
+                         init={"depth_scale_points": 0})
         for f in frames if first else frames[:14]:  # 500: past init_wait is enough to show it
             fe.process(f)
         traj = fe.trajectory()
@@ -64,3 +66,29 @@ def test_depth_poor_start_waits_init_wait_frames_then_starts_with_fewer_points()
         assert min(traj) == first and set(range(first)) <= set(fe.lost_frames())
         assert len(traj) >= len(seq) - first - 2
         assert ate(seq.timestamps, traj, seq.gt_poses, "se3")["rmse"] < 0.02
+
+
+def test_depth_poor_start_from_two_views_is_metric():
+    """90 % of every depth map in holes (about 20-110 keypoints with depth, never the 150 of
+    min_init_points_late): the map starts from two views scaled by the depth its points have,
+    the frames after it are tracked at the true scale (SE(3) ATE, Sim(3) scale near 1); with the
+    fallback off (init.depth_scale_points 0) no map starts."""
+    from segs.data.stress import apply_stress
+
+    base = SyntheticSequence(sensor="rgbd", n_frames=60, width=320, height=240, trajectory="orbit", speed=0.5, seed=0)
+    seq = apply_stress(base, "depth_holes", 0.9)
+    frames = [seq[i] for i in range(len(seq))]
+    assert max(int((f.depth > 0).mean() * 1000) for f in frames) < 150  # under 15 % of the pixels
+    off = OrbFrontend(seq.camera, "rgbd", init={"depth_scale_points": 0})
+    for f in frames[:30]:
+        off.process(f)
+    assert not off.trajectory()
+    fe = OrbFrontend(seq.camera, "rgbd")
+    for f in frames:
+        fe.process(f)
+    traj = fe.trajectory()
+    assert min(traj) > fe.cfg.tracking.init_wait  # not a depth start at frame 0
+    assert set(range(min(traj), len(seq))) <= set(traj), "frames lost after the two-view start"
+    assert len(traj) >= 40
+    assert ate(seq.timestamps, traj, seq.gt_poses, "se3")["rmse"] < 0.03
+    assert abs(ate(seq.timestamps, traj, seq.gt_poses, "sim3")["scale"] - 1.0) < 0.05

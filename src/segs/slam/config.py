@@ -106,6 +106,7 @@ class InitConfig:
     max_frames: int = 60  # frames a reference may wait for its partner before it is replaced
     homography_ratio: float = 0.40  # R_H = S_H / (S_H + S_F) above this -> homography
     ba_iterations: int = 20  # bundle adjustment of the two-view map (ORB-SLAM: 20)
+    depth_scale_points: int = 20  # stereo / RGB-D depth-poor start: two views scaled by this many depths (0: off)
 
 
 @dataclass

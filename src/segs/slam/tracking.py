@@ -90,7 +90,9 @@ class Tracker(StateFields):
         retry_k = cfg.rgbd_retry_depth_noise
         self._depth_retry_sigma = setup.bf * retry_k if setup.sensor == "rgbd" and retry_k > 0 else None
         self.depth_retries: list[int] = []  # frames tracked only by that retry
-        self.mono_init = MonoInitializer(init_cfg, setup.K, setup.sigma2, self.seed) if setup.mono else None
+        # monocular: the two-view start; stereo / RGB-D: the depth-poor fallback (init.depth_scale_points)
+        two_view = setup.mono or init_cfg.depth_scale_points > 0
+        self.mono_init = MonoInitializer(init_cfg, setup.K, setup.sigma2, self.seed) if two_view else None
 
     _STATE = ("poses", "state", "last", "velocity", "ref_kf", "last_kf_frame", "last_reloc_frame", "lost_since",
               "last_good_w2c", "_local_key", "_local_kfs", "_local_pids", "_max_inl", "mono_init", "depth_retries",
@@ -189,8 +191,12 @@ class Tracker(StateFields):
         if int((frame.depth > 0).sum()) < need:
             self.init_waited += 1
             frame.w2c = None
+            if self.mono_init is not None and not self.map.kfs:
+                return self._initialize_two_view_depth(frame)
             return None
         self.init_waited = 0
+        if self.mono_init is not None:
+            self.mono_init.reset()
         w2c = self.last_good_w2c if self.last_good_w2c is not None else np.eye(4)
         frame.w2c = w2c.copy()
         kf = KeyFrame(self.map.new_kf_id(), frame, frame.w2c)
@@ -200,11 +206,48 @@ class Tracker(StateFields):
         frame.points = kf.points.copy()
         return self._after_init(frame, kf)
 
+    def _initialize_two_view_depth(self, frame: SlamFrame) -> KeyFrame | None:
+        """Stereo / RGB-D views with too little depth to start a map (first segment only): the
+        monocular two-view start, scaled to metres by the depth its points have (median ratio of
+        measured to triangulated depth over at least init.depth_scale_points keypoints). Frames
+        are fed from the first waiting one; a start is taken once init_wait frames have waited."""
+        res = self.mono_init.try_initialize(frame)
+        if res is None:
+            return None
+        scale = self._depth_scale(self.mono_init.ref, frame, res) if self.init_waited > self.cfg.init_wait else None
+        if scale is None:  # not yet: the frame waits with the others for a later partner
+            self.mono_init.waiting.append(frame)
+            return None
+        res.w2c = res.w2c.copy()
+        res.w2c[:3, 3] *= scale
+        res.points = res.points * scale
+        kf = self._start_two_view(frame, res, metric=True)
+        if kf is not None:
+            self.init_waited = 0
+            self.log(f"frame {frame.index}: depth-poor start from two views, scaled by the depth of its points")
+        return kf
+
+    def _depth_scale(self, ref: SlamFrame, frame: SlamFrame, res) -> float | None:
+        """Metres per unit of a two-view reconstruction (reference at the identity): the median of
+        measured / triangulated depth over the matched keypoints with depth in either view."""
+        z = (res.points[:, 2], transform(res.w2c, res.points)[:, 2])
+        d = (ref.depth[res.idx_ref], frame.depth[res.idx_cur])
+        ratios = np.concatenate([di[(di > 0) & (zi > 0)] / zi[(di > 0) & (zi > 0)] for di, zi in zip(d, z)])
+        if len(ratios) < self.init_cfg.depth_scale_points:
+            return None
+        return float(np.median(ratios))
+
     def _initialize_mono(self, frame: SlamFrame) -> KeyFrame | None:
         frame.w2c = None
         res = self.mono_init.try_initialize(frame)
         if res is None:
             return None
+        return self._start_two_view(frame, res, metric=False)
+
+    def _start_two_view(self, frame: SlamFrame, res, metric: bool) -> KeyFrame | None:
+        """The map from a two-view result: two keyframes, their points, BA. Not metric (monocular):
+        scaled to a median depth of 1 afterwards; metric (stereo / RGB-D): the result is already in
+        metres, BA uses the keypoints' depth and every other keypoint with depth becomes a point."""
         m = self.map
         ref = self.mono_init.ref
         ref.w2c = np.eye(4)
@@ -226,14 +269,18 @@ class Tracker(StateFields):
         depth = transform(kf0.w2c, m.pos[p0])[:, 2]
         _, p1 = m.kf_point_ids(kf1)
         if len(p1) < self.init_cfg.min_triangulated or np.median(depth) <= 0:
-            self.log(f"frame {frame.index}: monocular initialization rejected, resetting")
+            self.log(f"frame {frame.index}: two-view initialization rejected, resetting")
             self._reset_map()
             return None
-        s = 1.0 / float(np.median(depth))
-        T1 = kf1.w2c.copy()
-        T1[:3, 3] *= s
-        kf1.w2c = T1
-        m.pos[p0] *= s
+        if not metric:
+            s = 1.0 / float(np.median(depth))
+            T1 = kf1.w2c.copy()
+            T1[:3, 3] *= s
+            kf1.w2c = T1
+            m.pos[p0] *= s
+        else:
+            for kf in (kf0, kf1):  # (local mapping's recent points from _add_depth_points)
+                self._add_depth_points(kf, np.flatnonzero((kf.depth > 0) & (kf.points < 0)))
         frame.w2c = kf1.w2c.copy()
         frame.points = kf1.points.copy()
         self.mapper.register_initial([kf0, kf1], pids)
