@@ -1,6 +1,7 @@
 """Map initialization.
 
-RGB-D / stereo: one frame with enough keypoints with depth (back-projected; see `Tracker`).
+RGB-D / stereo: one frame with enough keypoints with depth (back-projected; see `Tracker`); where
+no frame has enough, the two-view start below scaled to metres by the depth its points have.
 Monocular: two views. A reference frame waits for a partner; their ORB matches feed a homography
 and an essential matrix (OpenCV MAGSAC++); ORB-SLAM's symmetric transfer scores choose the model
 (R_H = S_H / (S_H + S_F) > 0.40 -> homography), the model's motion hypotheses are triangulated and

@@ -5,7 +5,8 @@ last frame's points (fallback: descriptor matching against the reference keyfram
 pose optimisation, then projection matching into the local map (keyframes sharing points with the
 frame and their covisible neighbours) and a second optimisation. When tracking fails, the frame is
 lost (no pose) and the following frames try relocalization (bag-of-words candidates, PnP RANSAC).
-Monocular frames that waited for the two-view initialization are tracked once it succeeds.
+Frames that waited for a two-view initialization (monocular, or a depth-poor stereo / RGB-D start)
+are tracked once it succeeds.
 The keyframe decision follows ORB-SLAM3 (max / min frame gap, tracked-points ratio against the
 reference keyframe, close-point need for stereo / RGB-D).
 """
