@@ -322,6 +322,12 @@ def test_native_map_bookkeeping_equals_python():
     m.desc[:] = before
     m.update_descriptors(pids, native=True)
     assert np.array_equal(m.desc, want) and not np.array_equal(want[pids], before[pids])
+    # the kernels index the map's own list by point id: an id outside it is an error, not a read
+    for bad in (np.array([len(m.obs)]), np.array([-1])):
+        with pytest.raises(IndexError):
+            kernels().unobserved_by(m.obs, bad, kfs[0])
+    with pytest.raises(ValueError, match="octaves"):  # a keyframe's octaves that are not a 1-D array
+        kernels().gather_observers(m.obs, pids[:5], {k: np.zeros((2, 2), np.int64) for k in m.kfs}, m.ref_kf[pids[:5]])
 
 
 def test_refine_pose_is_robust_to_outliers():

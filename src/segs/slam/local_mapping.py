@@ -478,7 +478,7 @@ def redundant_points(obs: list[dict[int, int]], pids: np.ndarray, level: np.ndar
     <= level [P] (ORB-SLAM's KeyFrameCulling count). native: the C++ loop where it is built."""
     ext = kernels() if native else None
     if ext is not None:
-        return int(ext.redundant_points([obs[p] for p in pids.tolist()], level, exclude, octaves, th_obs))
+        return int(ext.redundant_points(obs, pids, level, exclude, octaves, th_obs))
     redundant = 0
     for p, lvl in zip(pids.tolist(), level.tolist()):
         cnt = 0

@@ -250,7 +250,7 @@ class Map:
         where built)."""
         ext = kernels() if native else None
         if ext is not None:
-            return ext.unobserved_by([self.obs[p] for p in pids.tolist()], int(kf_id))
+            return ext.unobserved_by(self.obs, pids, int(kf_id))
         return np.fromiter((kf_id not in self.obs[p] for p in pids.tolist()), bool, len(pids))
 
     def observers(self, pids: np.ndarray, native: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -260,7 +260,7 @@ class Map:
         ext = kernels() if native else None
         if ext is not None:
             octaves = {k: kf.kp.octave for k, kf in self.kfs.items()}
-            return ext.gather_observers([self.obs[p] for p in pids.tolist()], octaves, self.ref_kf[pids])
+            return ext.gather_observers(self.obs, pids, octaves, self.ref_kf[pids])
         owner, kfid = [], []
         for j, pid in enumerate(pids.tolist()):
             for k in self.obs[pid]:
@@ -286,7 +286,7 @@ class Map:
         ext = kernels() if native else None
         if ext is not None:
             descs = {k: kf.kp.desc for k, kf in self.kfs.items()}
-            rows, desc = ext.distinctive_descriptors([obs[p] for p in pids.tolist()], descs)
+            rows, desc = ext.distinctive_descriptors(obs, pids, descs)
             self.desc[pids[rows]] = desc
             return
         counts = np.array([len(obs[p]) for p in pids.tolist()], np.int64)
@@ -351,7 +351,7 @@ class Map:
         first-seen order (the C++ loop where built)."""
         ext = kernels() if native else None
         if ext is not None:
-            keys, cnt = ext.count_observers([self.obs[p] for p in pids.tolist()], int(exclude))
+            keys, cnt = ext.count_observers(self.obs, pids, int(exclude))
             return dict(zip(keys.tolist(), cnt.tolist()))
         counts: dict[int, int] = {}
         for pid in pids.tolist():

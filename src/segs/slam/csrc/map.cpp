@@ -27,42 +27,84 @@ i64 as_int(PyObject* o) {
   return v;
 }
 
-// keyframe id -> its keypoints' octaves [N] (int64), from a dict {kf id: array}. The arrays stay
-// referenced by the dict for the duration of the call.
-std::unordered_map<i64, const i64*> octave_table(const py::dict& octaves, std::vector<py::object>& keep) {
-  std::unordered_map<i64, const i64*> out;
-  out.reserve(octaves.size() * 2);
-  for (auto item : octaves) {
-    auto a = Arr<i64>::ensure(item.second);
-    if (!a) throw std::invalid_argument("octaves: int64 arrays expected");
-    out.emplace(item.first.cast<i64>(), a.data());
-    keep.push_back(a);
+// The observation dicts of points pids[j] in the map's list obs (Map.obs: point id -> {kf id:
+// keypoint index}), read in place: callers pass the whole list and the ids instead of a list
+// gathered in Python for each call (borrowed references, valid while the list is).
+class PointObs {
+ public:
+  PointObs(const py::list& obs, const Arr<i64>& pids) : list_(obs.ptr()), ids_(pids.data()), n_(pids.size()) {
+    const py::ssize_t size = PyList_GET_SIZE(list_);
+    for (py::ssize_t j = 0; j < n_; ++j)
+      if (ids_[j] < 0 || ids_[j] >= size) throw std::out_of_range("pids: a point id outside the map");
   }
-  return out;
-}
+  py::ssize_t size() const { return n_; }
+  PyObject* operator[](py::ssize_t j) const {
+    PyObject* d = PyList_GET_ITEM(list_, ids_[j]);
+    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    return d;
+  }
 
-// ORB-SLAM's keyframe redundancy count (LocalMapping::KeyFrameCulling): of the points obs[i]
-// (list of dicts {kf id: keypoint index}), how many are seen by at least `th_obs` keyframes other
+ private:
+  PyObject* list_;
+  const i64* ids_;
+  py::ssize_t n_;
+};
+
+// A dict {kf id: array} read by keyframe id, each array converted when first asked for (a call
+// touches the few keyframes that observe its points, not every keyframe of the map). `cols`: the
+// row length the arrays must have (0: one-dimensional). The arrays stay referenced by the dict.
+template <typename T>
+class KeyframeArrays {
+ public:
+  KeyframeArrays(const py::dict& d, py::ssize_t cols, const char* what) : dict_(d.ptr()), cols_(cols), what_(what) {}
+  // the array of keyframe `key` (a Python int), or nullptr where the dict has none
+  const T* find(PyObject* key) {
+    const i64 k = as_int(key);
+    auto it = cache_.find(k);
+    if (it != cache_.end()) return it->second;
+    PyObject* v = PyDict_GetItemWithError(dict_, key);
+    if (v == nullptr && PyErr_Occurred()) throw py::error_already_set();
+    const T* p = nullptr;
+    if (v != nullptr) {
+      auto a = Arr<T>::ensure(py::reinterpret_borrow<py::object>(v));
+      if (!a || (cols_ ? (a.ndim() != 2 || a.shape(1) != cols_) : a.ndim() != 1))
+        throw std::invalid_argument(what_);
+      p = a.data();
+      keep_.push_back(std::move(a));
+    }
+    cache_.emplace(k, p);
+    return p;
+  }
+
+ private:
+  PyObject* dict_;
+  py::ssize_t cols_;
+  const char* what_;
+  std::unordered_map<i64, const T*> cache_;
+  std::vector<py::object> keep_;
+};
+
+// ORB-SLAM's keyframe redundancy count (LocalMapping::KeyFrameCulling): of the points pids[i]
+// (observations in obs_all, dicts {kf id: keypoint index}), how many are seen by at least `th_obs` keyframes other
 // than `exclude` that are in `octaves` (the map's keyframes) at an octave <= level[i].
-i64 redundant_points(const py::list& obs, Arr<i64> level, i64 exclude, const py::dict& octaves, i64 th_obs) {
-  std::vector<py::object> keep;
-  const auto oct = octave_table(octaves, keep);
+i64 redundant_points(const py::list& obs_all, Arr<i64> pids, Arr<i64> level, i64 exclude, const py::dict& octaves,
+                     i64 th_obs) {
+  KeyframeArrays<i64> oct(octaves, 0, "octaves: int64 arrays expected");
   const i64* lvl = level.data();
-  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+  const PointObs obs(obs_all, pids);
+  const py::ssize_t n = obs.size();
   if (level.size() != n) throw std::invalid_argument("level: one entry per point expected");
   i64 redundant = 0;
   for (py::ssize_t i = 0; i < n; ++i) {
-    PyObject* d = PyList_GET_ITEM(obs.ptr(), i);
-    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    PyObject* d = obs[i];
     PyObject *key, *value;
     Py_ssize_t pos = 0;
     i64 cnt = 0;
     while (PyDict_Next(d, &pos, &key, &value)) {
-      const i64 k = as_int(key);
-      if (k == exclude) continue;
-      auto it = oct.find(k);
-      if (it == oct.end()) continue;
-      if (it->second[as_int(value)] <= lvl[i] && ++cnt >= th_obs) {
+      if (as_int(key) == exclude) continue;
+      const i64* o = oct.find(key);
+      if (o == nullptr) continue;
+      if (o[as_int(value)] <= lvl[i] && ++cnt >= th_obs) {
         ++redundant;
         break;
       }
@@ -71,31 +113,30 @@ i64 redundant_points(const py::list& obs, Arr<i64> level, i64 exclude, const py:
   return redundant;
 }
 
-// Flattens observations for Map.update_geometry: for point row j (obs[j]) every observer k that is
+// Flattens observations for Map.update_geometry: for point row j (point pids[j]) every observer k that is
 // a key of `alive` -> (owner [O] = j, kf [O] = k), in dict order; and per row the octave of its
 // observation by ref[j] (-1 where ref[j] is not alive or does not observe the point).
-py::tuple gather_observers(const py::list& obs, const py::dict& octaves, Arr<i64> ref) {
-  std::vector<py::object> keep;
-  const auto oct = octave_table(octaves, keep);
-  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+py::tuple gather_observers(const py::list& obs_all, Arr<i64> pids, const py::dict& octaves, Arr<i64> ref) {
+  KeyframeArrays<i64> oct(octaves, 0, "octaves: int64 arrays expected");
+  const PointObs obs(obs_all, pids);
+  const py::ssize_t n = obs.size();
   if (ref.size() != n) throw std::invalid_argument("ref: one entry per point expected");
   const i64* r = ref.data();
   std::vector<i64> owner, kf;
   py::array_t<i64> ref_oct(n);
   i64* ro = ref_oct.mutable_data();
   for (py::ssize_t j = 0; j < n; ++j) {
-    PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
-    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    PyObject* d = obs[j];
     PyObject *key, *value;
     Py_ssize_t pos = 0;
     ro[j] = -1;
     while (PyDict_Next(d, &pos, &key, &value)) {
+      const i64* o = oct.find(key);
+      if (o == nullptr) continue;
       const i64 k = as_int(key);
-      auto it = oct.find(k);
-      if (it == oct.end()) continue;
       owner.push_back(j);
       kf.push_back(k);
-      if (k == r[j]) ro[j] = it->second[as_int(value)];
+      if (k == r[j]) ro[j] = o[as_int(value)];
     }
   }
   py::array_t<i64> a(static_cast<py::ssize_t>(owner.size())), b(static_cast<py::ssize_t>(kf.size()));
@@ -104,35 +145,27 @@ py::tuple gather_observers(const py::list& obs, const py::dict& octaves, Arr<i64
   return py::make_tuple(a, b, ref_oct);
 }
 
-// Map.update_descriptors: per point obs[j], the descriptors of its observations by keyframes in
+// Map.update_descriptors: per point pids[j], the descriptors of its observations by keyframes in
 // `descs` ({kf id: keypoint descriptors [N,32] uint8}) in dict order; for points with at least two,
 // the one with the least median Hamming distance to the others (ORB-SLAM's
 // ComputeDistinctiveDescriptors; median of an even count = mean of the middle two; the first on
 // ties). -> (rows [R] of the points that have one, descriptors [R,32]).
-py::tuple distinctive_descriptors(const py::list& obs, const py::dict& descs) {
-  std::vector<py::object> keep;
-  std::unordered_map<i64, const std::uint8_t*> table;
-  table.reserve(descs.size() * 2);
-  for (auto item : descs) {
-    auto a = Arr<std::uint8_t>::ensure(item.second);
-    if (!a || a.ndim() != 2 || a.shape(1) != 32) throw std::invalid_argument("descs: uint8 [N,32] arrays expected");
-    table.emplace(item.first.cast<i64>(), a.data());
-    keep.push_back(a);
-  }
-  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+py::tuple distinctive_descriptors(const py::list& obs_all, Arr<i64> pids, const py::dict& descs) {
+  KeyframeArrays<std::uint8_t> table(descs, 32, "descs: uint8 [N,32] arrays expected");
+  const PointObs obs(obs_all, pids);
+  const py::ssize_t n = obs.size();
   std::vector<i64> rows;
   std::vector<std::uint8_t> out;
   std::vector<const std::uint8_t*> d;
   std::vector<int> dist, row;
   for (py::ssize_t j = 0; j < n; ++j) {
-    PyObject* o = PyList_GET_ITEM(obs.ptr(), j);
-    if (!PyDict_Check(o)) throw std::invalid_argument("obs: dicts expected");
+    PyObject* o = obs[j];
     PyObject *key, *value;
     Py_ssize_t pos = 0;
     d.clear();
     while (PyDict_Next(o, &pos, &key, &value)) {
-      auto it = table.find(as_int(key));
-      if (it != table.end()) d.push_back(it->second + 32 * as_int(value));
+      const std::uint8_t* a = table.find(key);
+      if (a != nullptr) d.push_back(a + 32 * as_int(value));
     }
     const std::size_t m = d.size();
     if (m < 2) continue;
@@ -162,17 +195,16 @@ py::tuple distinctive_descriptors(const py::list& obs, const py::dict& descs) {
 
 }  // namespace
 
-// Local mapping's fusion candidates: which points obs[j] (dicts {kf id: keypoint index}) keyframe
-// `kf` does not observe -> [N] bool.
-py::array_t<bool> unobserved_by(const py::list& obs, i64 kf) {
-  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+// Local mapping's fusion candidates: which points pids[j] (observations in obs_all, dicts {kf id:
+// keypoint index}) keyframe `kf` does not observe -> [N] bool.
+py::array_t<bool> unobserved_by(const py::list& obs_all, Arr<i64> pids, i64 kf) {
+  const PointObs obs(obs_all, pids);
+  const py::ssize_t n = obs.size();
   py::array_t<bool> out(n);
   bool* o = out.mutable_data();
   const py::int_ key(kf);
   for (py::ssize_t j = 0; j < n; ++j) {
-    PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
-    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
-    const int has = PyDict_Contains(d, key.ptr());
+    const int has = PyDict_Contains(obs[j], key.ptr());
     if (has < 0) throw py::error_already_set();
     o[j] = has == 0;
   }
@@ -205,14 +237,15 @@ class FirstSeenCounter {
   std::unordered_map<i64, std::size_t> at_;
 };
 
-// Map.update_connections: how many of the points obs[j] (dicts {kf id: keypoint index}) each
-// keyframe other than `exclude` observes -> (keyframe ids [K] in first-seen order, counts [K]).
-py::tuple count_observers(const py::list& obs, i64 exclude) {
-  const py::ssize_t n = PyList_GET_SIZE(obs.ptr());
+// Map.update_connections: how many of the points pids[j] (observations in obs_all, dicts {kf id:
+// keypoint index}) each keyframe other than `exclude` observes -> (keyframe ids [K] in first-seen
+// order, counts [K]).
+py::tuple count_observers(const py::list& obs_all, Arr<i64> pids, i64 exclude) {
+  const PointObs obs(obs_all, pids);
+  const py::ssize_t n = obs.size();
   FirstSeenCounter counter;
   for (py::ssize_t j = 0; j < n; ++j) {
-    PyObject* d = PyList_GET_ITEM(obs.ptr(), j);
-    if (!PyDict_Check(d)) throw std::invalid_argument("obs: dicts expected");
+    PyObject* d = obs[j];
     PyObject *key, *value;
     Py_ssize_t pos = 0;
     while (PyDict_Next(d, &pos, &key, &value)) {
