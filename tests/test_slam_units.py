@@ -322,12 +322,38 @@ def test_native_map_bookkeeping_equals_python():
     m.desc[:] = before
     m.update_descriptors(pids, native=True)
     assert np.array_equal(m.desc, want) and not np.array_equal(want[pids], before[pids])
+    # a keyframe observing points: added, already there, or a second keypoint of the same point
+    import copy
+
+    kf = m.kfs[kfs[-1]]
+    own = np.flatnonzero(kf.points >= 0)
+    other = np.array([p for p in pids.tolist() if kf.kf_id not in m.obs[p]][:30], np.int64)
+    free = np.flatnonzero(kf.points < 0)[: len(other) + 2]
+    idx = np.concatenate([own[:20], free[: len(other)], free[-2:]])
+    pts = np.concatenate([kf.points[own[:20]], other, other[:2]])  # the last two: points just added
+    saved = (copy.deepcopy(m.obs), m.n_obs.copy(), kf.points.copy(), m.version)
+    results = []
+    for native in (True, False):
+        m.obs, m.n_obs, kf.points, m.version = copy.deepcopy(saved[0]), saved[1].copy(), saved[2].copy(), saved[3]
+        m.observe(kf, idx, pts, native=native)
+        results.append((m.obs, m.n_obs.copy(), kf.points.copy(), m.version))
+    (o1, n1, k1, v1), (o2, n2, k2, v2) = results
+    assert o1 == o2 and np.array_equal(n1, n2) and np.array_equal(k1, k2) and v1 == v2 > saved[3]
+    assert (k1[free[-2:]] == -1).all() and np.array_equal(k1[free[: len(other)]], other)
+    assert all(o1[p][kf.kf_id] == i for p, i in zip(other.tolist(), free.tolist()))
     # the kernels index the map's own list by point id: an id outside it is an error, not a read
     for bad in (np.array([len(m.obs)]), np.array([-1])):
         with pytest.raises(IndexError):
             kernels().unobserved_by(m.obs, bad, kfs[0])
     with pytest.raises(ValueError, match="octaves"):  # a keyframe's octaves that are not a 1-D array
         kernels().gather_observers(m.obs, pids[:5], {k: np.zeros((2, 2), np.int64) for k in m.kfs}, m.ref_kf[pids[:5]])
+    # replaced points: followed to the survivor, or -1 when it is gone too
+    chain = pids[:2]
+    assert m.live_ids(chain).tolist() == chain.tolist()
+    m.replace_point(int(chain[0]), int(chain[1]))
+    assert m.live_ids(chain).tolist() == [chain[1]] * 2
+    m.set_point_bad(int(chain[1]))
+    assert m.live_ids(chain).tolist() == [-1, -1]
 
 
 def test_refine_pose_is_robust_to_outliers():

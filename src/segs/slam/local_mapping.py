@@ -91,16 +91,9 @@ class LocalMapper(StateFields):
     def _process_new(self, kf: KeyFrame) -> None:
         m = self.map
         idx = np.flatnonzero(kf.points >= 0)
-        for i, p in zip(idx.tolist(), kf.points[idx].tolist()):
-            live = m.live(p)
-            if live < 0:
-                kf.points[i] = -1
-                continue
-            if kf.kf_id in m.obs[live]:
-                if m.obs[live][kf.kf_id] != i:
-                    kf.points[i] = -1
-                continue
-            m.add_obs(live, kf, i)
+        live = m.live_ids(kf.points[idx])
+        kf.points[idx[live < 0]] = -1
+        m.observe(kf, idx[live >= 0], live[live >= 0])
         _, pids = m.kf_point_ids(kf)
         m.update_geometry(pids)
         m.update_descriptors(pids)

@@ -211,6 +211,36 @@ class Map:
         if update_descriptor:
             self.update_descriptors(np.array([new]))
 
+    def observe(self, kf: KeyFrame, idx: np.ndarray, pids: np.ndarray, native: bool = True) -> None:
+        """kf observes the valid points pids [K] at its keypoints idx [K], in order: an observation
+        is added where kf has none of the point; a keypoint whose point kf already observes at
+        another keypoint is cleared (kf.points = -1). native: the C++ loop where built."""
+        ext = kernels() if native else None
+        if ext is None:
+            for i, p in zip(idx.tolist(), pids.tolist()):
+                if kf.kf_id in self.obs[p]:
+                    if self.obs[p][kf.kf_id] != i:
+                        kf.points[i] = -1
+                else:
+                    self.add_obs(p, kf, i)
+            return
+        status = ext.observe_points(self.obs, pids, idx, int(kf.kf_id))
+        add = status == 2
+        kf.points[idx[status == 1]] = -1
+        ia, pa = idx[add], pids[add]  # each point once: a second entry finds the first's observation
+        kf.points[ia] = pa
+        self.n_obs[pa] += np.where(kf.ur[ia] >= 0, 2, 1)
+        self.version += len(pa)
+
+    def live_ids(self, pids: np.ndarray) -> np.ndarray:
+        """`live` of each of pids [K] (>= 0) -> [K] surviving point ids (-1: none)."""
+        p = np.array(pids, np.int64)
+        while True:
+            dead = np.flatnonzero((p >= 0) & ~self.valid[np.maximum(p, 0)])
+            if not len(dead):
+                return p
+            p[dead] = self.replaced[p[dead]]
+
     def live(self, pid: int) -> int:
         """Follow replacements to the surviving point (or -1)."""
         while pid >= 0 and not self.valid[pid]:

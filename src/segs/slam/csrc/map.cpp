@@ -211,6 +211,32 @@ py::array_t<bool> unobserved_by(const py::list& obs_all, Arr<i64> pids, i64 kf) 
   return out;
 }
 
+// Local mapping's new keyframe (LocalMapper._process_new): keyframe `kf` observes point pids[j] at
+// keypoint idx[j], in order. Per entry -> 0: it already does at that keypoint; 1: it already does
+// at another keypoint (the entry is dropped); 2: the observation is added to obs_all[pids[j]].
+py::array_t<std::int8_t> observe_points(const py::list& obs_all, Arr<i64> pids, Arr<i64> idx, i64 kf) {
+  const PointObs obs(obs_all, pids);
+  const py::ssize_t n = obs.size();
+  if (idx.size() != n) throw std::invalid_argument("idx: one keypoint per point expected");
+  const i64* ki = idx.data();
+  py::array_t<std::int8_t> out(n);
+  std::int8_t* o = out.mutable_data();
+  const py::int_ key(kf);
+  for (py::ssize_t j = 0; j < n; ++j) {
+    PyObject* d = obs[j];
+    PyObject* have = PyDict_GetItemWithError(d, key.ptr());
+    if (have != nullptr) {
+      o[j] = as_int(have) == ki[j] ? 0 : 1;
+      continue;
+    }
+    if (PyErr_Occurred()) throw py::error_already_set();
+    const py::int_ value(ki[j]);
+    if (PyDict_SetItem(d, key.ptr(), value.ptr()) < 0) throw py::error_already_set();
+    o[j] = 2;
+  }
+  return out;
+}
+
 // Counts per keyframe id in first-seen order (the order of the Python dict the callers build).
 class FirstSeenCounter {
  public:
@@ -284,6 +310,7 @@ void register_map_kernels(py::module_& m) {
   m.def("common_words", &common_words);
   m.def("count_observers", &count_observers);
   m.def("unobserved_by", &unobserved_by);
+  m.def("observe_points", &observe_points);
   m.def("redundant_points", &redundant_points);
   m.def("gather_observers", &gather_observers);
   m.def("distinctive_descriptors", &distinctive_descriptors);
