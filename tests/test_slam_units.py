@@ -717,3 +717,13 @@ def test_keypoint_depth_lookup_is_the_3x3_dilation_and_erosion_test():
     want[(lo <= 0) | (hi - lo > 0.05 * want)] = 0.0
     got = FrameBuilder._lookup_depth(depth, uv, 0.05)
     assert np.array_equal(got, want) and 0 < (got > 0).sum() < len(uv)
+
+
+def test_triangulation_parallax_per_sensor():
+    """Monocular triangulation takes mapping.min_parallax_deg_mono, stereo / RGB-D
+    mapping.min_parallax_deg (rays without depth)."""
+    seq = SyntheticSequence(sensor="rgbd", n_frames=2, width=160, height=120, seed=0)
+    mapping = {"min_parallax_deg": 1.0, "min_parallax_deg_mono": 3.0}
+    for sensor, deg in (("mono", 3.0), ("rgbd", 1.0)):
+        fe = OrbFrontend(seq.camera, sensor, mapping=mapping)
+        assert fe.mapper.cos_parallax == pytest.approx(np.cos(np.radians(deg)))

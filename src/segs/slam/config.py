@@ -120,6 +120,7 @@ class MappingConfig:
     scale_consistency: float = 1.5  # distance ratio vs octave ratio within this x scale_factor (ratioFactor)
     min_baseline_ratio: float = 0.01  # monocular partners need baseline / median depth above this
     min_parallax_deg: float = 1.15  # rays of a triangulated point (no depth) at least this far apart
+    min_parallax_deg_mono: float = 2.0  # idem, monocular (see conf/slam/orb.yaml)
     ba_window: int = 7  # optimised keyframes of local BA (new one + best covisible)
     ba_fixed_max: int = 10  # keyframes held fixed around the window
     ba_iterations: tuple = (4, 1)  # LM iterations before / after removing outliers (0: one pass); mono, stereo

@@ -41,7 +41,8 @@ class LocalMapper(StateFields):
         self.ba, self.outbox, self.log = ba, outbox, log
         self.recent: list[int] = []  # young points (ids), culled or mature after a few keyframes
         self.ba_times: list[float] = []  # seconds per bundle adjustment
-        self.cos_parallax = float(np.cos(np.radians(self.cfg.min_parallax_deg)))
+        parallax = cfg.min_parallax_deg_mono if setup.sensor == "mono" else cfg.min_parallax_deg
+        self.cos_parallax = float(np.cos(np.radians(parallax)))
 
     _STATE = ("recent", "ba_times")
 
