@@ -270,9 +270,9 @@ class LocalMapper(StateFields):
             else:
                 m.add_obs(p, kf, i)
             n += 1
-        alive = [x for x in {m.live(x) for x in merged} if x >= 0]
-        if alive:
-            m.update_descriptors(np.array(sorted(alive), np.int64))
+        alive = np.unique(m.live_ids(np.asarray(merged, np.int64)))
+        if len(alive) and alive[-1] >= 0:
+            m.update_descriptors(alive[alive >= 0])
         return n
 
     def project_match(self, kf: KeyFrame, pids: np.ndarray, w2c: np.ndarray, th: float,

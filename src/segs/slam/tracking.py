@@ -231,9 +231,10 @@ class Tracker(StateFields):
     def _depth_scale(self, ref: SlamFrame, frame: SlamFrame, res) -> float | None:
         """Metres per unit of a two-view reconstruction (reference at the identity): the median of
         measured / triangulated depth over the matched keypoints with depth in either view."""
-        z = (res.points[:, 2], transform(res.w2c, res.points)[:, 2])
-        d = (ref.depth[res.idx_ref], frame.depth[res.idx_cur])
-        ratios = np.concatenate([di[(di > 0) & (zi > 0)] / zi[(di > 0) & (zi > 0)] for di, zi in zip(d, z)])
+        z = np.concatenate([res.points[:, 2], transform(res.w2c, res.points)[:, 2]])
+        d = np.concatenate([ref.depth[res.idx_ref], frame.depth[res.idx_cur]])
+        ok = (d > 0) & (z > 0)
+        ratios = d[ok] / z[ok]
         if len(ratios) < self.init_cfg.depth_scale_points:
             return None
         return float(np.median(ratios))
@@ -265,7 +266,6 @@ class Tracker(StateFields):
         m.update_connections(kf0)
         m.update_connections(kf1)
         self.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=self.init_cfg.ba_iterations, fix_scale=False)
-        # scale: median depth of the first keyframe = 1
         _, p0 = m.kf_point_ids(kf0)
         depth = transform(kf0.w2c, m.pos[p0])[:, 2]
         _, p1 = m.kf_point_ids(kf1)
@@ -273,7 +273,7 @@ class Tracker(StateFields):
             self.log(f"frame {frame.index}: two-view initialization rejected, resetting")
             self._reset_map()
             return None
-        if not metric:
+        if not metric:  # scale: median depth of the first keyframe = 1
             s = 1.0 / float(np.median(depth))
             T1 = kf1.w2c.copy()
             T1[:3, 3] *= s
