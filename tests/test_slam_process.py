@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from segs.config import compose, instantiate, make_frontend, make_sequence
-from segs.errors import ConfigError
+from segs.errors import ConfigError, DataError
 from segs.slam.base import MapUpdate
 from segs.slam.process import FrontendProcess, _next_live
 from segs.slam.runner import run_sequence
@@ -109,12 +109,13 @@ def test_prepared_frames_track_like_raw_ones_and_keep_their_feature_time(tmp_pat
     assert (feats > 0).all() and (track >= feats).all()
 
 
-def test_run_sequence_with_prefetch_gives_the_same_run(tmp_path):
+@pytest.mark.parametrize("reader", ["thread", "process"])
+def test_run_sequence_with_prefetch_gives_the_same_run(tmp_path, reader):
     _, seq, factory = _setup(tmp_path)
     plain_fe, ahead_fe = factory(), factory()
     plain = run_sequence(plain_fe, seq, frames=range(2, len(seq)))
     seen = []
-    ahead = run_sequence(ahead_fe, seq, frames=range(2, len(seq)), prefetch=2,
+    ahead = run_sequence(ahead_fe, seq, frames=range(2, len(seq)), prefetch=2, reader=reader,
                          on_frame=lambda frame, res: seen.append(frame.index))
     assert seen == list(range(2, len(seq)))
     assert [r.frame_index for r in ahead.results] == seen
@@ -124,6 +125,35 @@ def test_run_sequence_with_prefetch_gives_the_same_run(tmp_path):
     assert np.array_equal(ahead.update.points, plain.update.points)
     # process_s still counts each frame's features (built in the reader thread)
     assert ahead.process_s >= sum(ahead_fe.times["features"])
+
+
+class _FailsAt:
+    """A sequence whose frame `bad` cannot be read (as a corrupt image file would)."""
+
+    def __init__(self, seq, bad: int):
+        self.seq, self.bad = seq, bad
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __getitem__(self, i: int):
+        if i == self.bad:
+            raise DataError(f"frame-{i:06d}.color.png: cannot decode")
+        return self.seq[i]
+
+
+def test_a_reader_process_error_reaches_the_caller_and_the_child_stops(tmp_path):
+    import multiprocessing
+
+    _, seq, factory = _setup(tmp_path)
+    seen = []
+    with pytest.raises(DataError, match="frame-000005.color.png"):
+        run_sequence(factory(), _FailsAt(seq, 5), prefetch=2, reader="process",
+                     on_frame=lambda frame, res: seen.append(frame.index))
+    assert seen == [0, 1, 2, 3, 4]  # every frame before the bad one was tracked
+    assert not [p for p in multiprocessing.active_children() if p.name == "segs-frames"]
+    with pytest.raises(ConfigError, match="reader"):
+        run_sequence(factory(), seq, prefetch=2, reader="fork")
 
 
 def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):

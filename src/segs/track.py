@@ -29,7 +29,9 @@ from segs.slam.runner import RunResult, run_sequence
 from segs.trajectory import ate, estimated_c2w, write_tum
 
 log = logging.getLogger("segs.track")
-PREFETCH = 2  # frames read and prepared ahead of tracking (slam_mode=interleaved)
+# frames read and prepared ahead of tracking, in a child process (slam_mode=interleaved): enough to
+# cover a keyframe's local mapping (docs/performance.md "The frame reader in a process of its own")
+PREFETCH = 16
 
 
 def lost_ranges(lost: list[int]) -> list[list[int]]:
@@ -74,9 +76,9 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         finally:
             frontend.close()
     else:
-        # the next frames are read and their features built in a thread while one is tracked
+        # the next frames are read and their features built in a child process while one is tracked
         result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None,
-                              prefetch=PREFETCH)
+                              prefetch=PREFETCH, reader="process")
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()

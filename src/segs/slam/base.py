@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
@@ -80,6 +81,11 @@ class Frontend(abc.ABC):
         source can run it ahead in another thread while the previous frame is tracked;
         process() accepts what this returns as well as the raw frame. Default: the frame."""
         return frame
+
+    def preparer(self) -> Callable[[Frame], Any] | None:
+        """A picklable callable doing what prepare() does, for a frame reader in a process of its
+        own (no interpreter lock shared with tracking); None: prepare() runs in this process only."""
+        return None
 
     @abc.abstractmethod
     def poll(self) -> MapUpdate:

@@ -106,6 +106,8 @@ class OrbExtractor:
     def __init__(self, n_features: int = 1500, scale_factor: float = 1.2, n_levels: int = 8,
                  fast_threshold: int = 20, min_fast_threshold: int = 7, cell_size: int = 30,
                  oversample: float = 3.0, floor_fast_threshold: int = 3):
+        self._args = (n_features, scale_factor, n_levels, fast_threshold, min_fast_threshold, cell_size,
+                      oversample, floor_fast_threshold)
         self.n_features = int(n_features)
         self.scale_factor = float(scale_factor)
         self.n_levels = int(n_levels)
@@ -124,6 +126,11 @@ class OrbExtractor:
         self._orbs = [make(th) for th in ths]
         self.scales = self.scale_factor ** np.arange(self.n_levels)
         self.sigma2 = self.scales ** 2
+
+    def __reduce__(self):
+        """Pickled as its arguments (OpenCV's ORB objects do not pickle): a frame reader in another
+        process builds the same extractor."""
+        return OrbExtractor, self._args
 
     @classmethod
     def from_config(cls, fc) -> "OrbExtractor":

@@ -23,7 +23,7 @@ import pickle
 import threading
 import time
 from types import SimpleNamespace
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -115,11 +115,11 @@ class OrbFrontend(Frontend):
     # ------------------------------------------------------------------ Frontend API
     def prepare(self, frame: Frame) -> SlamFrame:
         """The frame's features (ORB, depth / stereo) as a SlamFrame, built ahead by a frame
-        source in its own thread; the build's wall and thread CPU seconds are kept on it."""
-        t0, c0 = time.perf_counter(), time.thread_time()
-        sf = self.builder.build(frame)
-        sf.build_seconds = (time.perf_counter() - t0, time.thread_time() - c0)
-        return sf
+        source in its own thread or process; the build's wall and thread CPU seconds are kept on it."""
+        return self.builder.timed_build(frame)
+
+    def preparer(self) -> Callable[[Frame], SlamFrame]:
+        return self.builder.timed_build
 
     def process(self, frame: Frame | SlamFrame) -> FrameResult:
         """Track a frame; its features are built here unless prepare() built them ahead ("track"

@@ -1,13 +1,17 @@
 """Feeding a sequence to a frontend without training (tracking-only runs, benchmarks, tests)."""
 from __future__ import annotations
 
+import multiprocessing as mp
+import pickle
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Iterator
+from queue import Empty
+from typing import Any, Callable, Iterable, Iterator
 
 from segs.data.frame import Frame, Sequence
+from segs.errors import ConfigError
 from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
 
 
@@ -24,16 +28,24 @@ class RunResult:
 
 def run_sequence(frontend: Frontend, sequence: Sequence, frames: Iterable[int] | None = None,
                  on_frame: Callable[[Frame, FrameResult], None] | None = None,
-                 prefetch: int = 0) -> RunResult:
+                 prefetch: int = 0, reader: str = "thread") -> RunResult:
     """Process the frames (default: all) in order, polling after each, then finish().
 
-    prefetch: frames read and prepared (`Frontend.prepare`: features) ahead in a background
-    thread while the current one is tracked; the results are the same, only the wall clock
-    differs. process_s counts each frame's prepare time as well, so it stays the per-frame cost.
+    prefetch: frames read and prepared (`Frontend.prepare`: features) ahead while the current one
+    is tracked; the results are the same, only the wall clock differs. process_s counts each
+    frame's prepare time as well, so it stays the per-frame cost. reader: where they are read,
+    "thread" (a background thread of this process) or "process" (a child process, which shares no
+    interpreter lock with tracking; needs `Frontend.preparer()`, else a thread is used). With a
+    process reader on_frame gets the prepared frame (index, timestamp, features), not the images.
     """
+    if reader not in ("thread", "process"):
+        raise ConfigError(f"run_sequence: reader must be 'thread' or 'process', got {reader!r}")
     out = RunResult()
     indices = range(len(sequence)) if frames is None else frames
-    for frame, item in _frames(frontend, sequence, indices, prefetch):
+    preparer = frontend.preparer() if reader == "process" and prefetch > 0 else None
+    source = (_frames_in_process(preparer, sequence, list(indices), prefetch) if preparer is not None
+              else _frames(frontend, sequence, indices, prefetch))
+    for frame, item in source:
         t0 = time.perf_counter()
         res = frontend.process(item)
         out.process_s += time.perf_counter() - t0 + prepared_seconds(item)
@@ -70,3 +82,55 @@ def _frames(frontend: Frontend, sequence: Sequence, indices: Iterable[int],
             if nxt is not None:
                 pending.append(pool.submit(load, nxt))
             yield done.result()
+
+
+def _frames_in_process(preparer: Callable[[Frame], Any], sequence: Sequence, indices: list[int],
+                       ahead: int) -> Iterator[tuple[Any, Any]]:
+    """(prepared frame, prepared frame) in order, read and prepared by a spawned child process
+    that stays up to `ahead` frames in front (a bounded queue). An error in the child is raised
+    here; leaving the loop early (an exception, Ctrl-C) stops the child."""
+    ctx = mp.get_context("spawn")  # not fork: this process may hold threads and OpenMP / OpenCV pools
+    work, frames = ctx.Queue(), ctx.Queue(maxsize=ahead)
+    child = ctx.Process(target=_read_ahead, args=(work, frames), name="segs-frames", daemon=True)
+    child.start()
+    # the work goes through a queue, not the start arguments: a child that dies while starting (a
+    # script without a main guard) would leave a large argument write blocked for ever
+    work.put((preparer, sequence, indices))
+    try:
+        for _ in indices:
+            kind, item = _next_item(frames, child)
+            if kind == "error":
+                raise item
+            yield item, item
+    finally:
+        if child.is_alive():
+            child.terminate()
+        child.join()
+        for q in (work, frames):
+            q.cancel_join_thread()
+            q.close()
+
+
+def _next_item(frames, child) -> tuple[str, Any]:
+    while True:
+        try:
+            return frames.get(timeout=0.5)
+        except Empty:
+            if not child.is_alive() and frames.empty():
+                raise RuntimeError(f"the frame reader process ended (exit code {child.exitcode}) before "
+                                   "sending every frame; a script that starts it needs an "
+                                   "`if __name__ == '__main__':` guard") from None
+
+
+def _read_ahead(work, frames) -> None:
+    """Child process: prepare each frame in order into `frames`; an error goes there as ("error", e)."""
+    try:
+        preparer, sequence, indices = work.get()
+        for i in indices:
+            frames.put(("frame", preparer(sequence[i])))
+    except BaseException as e:  # noqa: BLE001 - every failure is reported to the parent
+        try:
+            pickle.dumps(e)
+        except Exception:  # noqa: BLE001
+            e = RuntimeError(f"{type(e).__name__}: {e}")
+        frames.put(("error", e))
