@@ -156,6 +156,24 @@ def test_a_reader_process_error_reaches_the_caller_and_the_child_stops(tmp_path)
         run_sequence(factory(), seq, prefetch=2, reader="fork")
 
 
+def test_a_reader_process_from_a_script_without_a_main_guard_fails_at_once(tmp_path):
+    """Python's spawn re-imports the main module: the child dies while starting; the call must
+    raise, naming the guard, instead of hanging."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from segs.config import compose, instantiate, make_sequence\n"
+        "from segs.slam.runner import run_sequence\n"
+        f"cfg = compose({BASE + ['data.n_frames=4']!r}, output_dir={str(tmp_path)!r})\n"
+        "seq = make_sequence(cfg.data)\n"
+        "run_sequence(instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor), seq, prefetch=2, reader='process')\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0
+    assert "__name__ == '__main__'" in out.stderr.splitlines()[-1]
+
+
 def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):
     import threading
 

@@ -22,19 +22,21 @@ polled yet beside it, so a resumed run loses and repeats nothing.
 """
 from __future__ import annotations
 
+import os
 import pickle
 import queue
 import subprocess
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from segs.data.frame import Frame, Sequence
 from segs.errors import ConfigError
 from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
+from segs.slam.runner import iterate_in_process
 
 MODES = ("interleaved", "process", "live")
 
@@ -260,10 +262,26 @@ def _next_live(timestamps: np.ndarray, i: int, t0: float, ts0: float, rate: floa
     return newest, list(range(i, newest))
 
 
+def _read_frames(sequence: Sequence, prepare: Callable[[Frame], Any], timestamps: np.ndarray, start: int,
+                 live: bool, rate: float, stopped: Callable[[], bool] = lambda: False) -> Iterator[tuple[Any, list[int]]]:
+    """(prepared frame, frames dropped before it) from `start` on: every frame, or live the newest
+    at rate x the wall clock since the first."""
+    n, i = len(sequence), start
+    t0 = time.perf_counter()
+    ts0 = float(timestamps[i]) if i < n else 0.0
+    while i < n and not stopped():
+        dropped: list[int] = []
+        if live:
+            i, dropped = _next_live(timestamps, i, t0, ts0, rate)
+        yield prepare(sequence[i]), dropped
+        i += 1
+
+
 class _FrameSource:
     """The child's frames, read (decoded, depth registered) and prepared (the frontend's
-    `prepare`: feature extraction) in a background thread, so that both overlap the tracking of
-    the previous frame (OpenCV's decoders and ORB release the GIL).
+    `prepare`: feature extraction) ahead of the tracking of the previous frame: in a process of
+    their own when the frontend has a picklable `preparer` (no interpreter lock shared with
+    tracking), else in a background thread (OpenCV's decoders and ORB release the GIL).
 
     process: every frame in order, up to `ahead` read in advance. live: a camera; frame i is read
     at its time (rate x wall clock) into a one-frame slot; a frame still in the slot when the next
@@ -272,7 +290,8 @@ class _FrameSource:
     """
 
     def __init__(self, sequence: Sequence, start: int, live: bool, rate: float, ahead: int = 4,
-                 prepare: Callable[[Frame], Any] = lambda frame: frame):
+                 prepare: Callable[[Frame], Any] = lambda frame: frame,
+                 preparer: Callable[[Frame], Any] | None = None):
         self.sequence, self.live, self.rate, self.prepare = sequence, live, rate, prepare
         self.timestamps = np.asarray(sequence.timestamps, np.float64)
         self._cv = threading.Condition()
@@ -282,18 +301,16 @@ class _FrameSource:
         self._error: BaseException | None = None
         self._ahead = 1 if live else ahead
         self._stop = False
-        threading.Thread(target=self._read, args=(start,), name="segs-frames", daemon=True).start()
+        if preparer is not None:  # the reader process runs ahead by itself; the slot logic stays here
+            frames = iterate_in_process(_read_frames, (sequence, preparer, self.timestamps, start, live, rate),
+                                        0 if live else self._ahead)
+        else:
+            frames = _read_frames(sequence, prepare, self.timestamps, start, live, rate, lambda: self._stop)
+        threading.Thread(target=self._deliver, args=(frames,), name="segs-frames", daemon=True).start()
 
-    def _read(self, start: int) -> None:
+    def _deliver(self, frames: Iterator[tuple[Any, list[int]]]) -> None:
         try:
-            n, i = len(self.sequence), start
-            t0 = time.perf_counter()
-            ts0 = float(self.timestamps[i]) if i < n else 0.0
-            while i < n and not self._stop:
-                dropped: list[int] = []
-                if self.live:
-                    i, dropped = _next_live(self.timestamps, i, t0, ts0, self.rate)
-                frame = self.prepare(self.sequence[i])
+            for frame, dropped in frames:
                 with self._cv:
                     self._dropped.extend(dropped)
                     if self.live and self._frames:  # the tracker did not take the previous one
@@ -301,11 +318,16 @@ class _FrameSource:
                         self._frames.clear()
                     while not self.live and len(self._frames) >= self._ahead and not self._stop:
                         self._cv.wait()
+                    if self._stop:
+                        break
                     self._frames.append(frame)
                     self._cv.notify_all()
-                i += 1
         except BaseException as exc:  # raised in the tracker's thread by next()
             self._error = exc
+        finally:
+            close = getattr(frames, "close", None)
+            if close is not None:
+                close()  # a reader process stops here
         with self._cv:
             self._ended = True
             self._cv.notify_all()
@@ -329,10 +351,24 @@ class _FrameSource:
             self._cv.notify_all()
 
 
+def _private_pipes():
+    """The parent's command and message pipes (this process's stdin / stdout) moved to descriptors
+    of their own, with stdin then /dev/null and stdout stderr: processes started from here (the
+    frame reader, multiprocessing's resource tracker) inherit descriptors 0-2, and must neither
+    keep the command pipe open (its end of stream would never come) nor write into the messages."""
+    commands, messages = os.fdopen(os.dup(0), "rb"), os.fdopen(os.dup(1), "wb")
+    devnull = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(devnull, 0)
+    os.close(devnull)
+    sys.stdout.flush()
+    os.dup2(2, 1)
+    return commands, messages
+
+
 def _serve() -> None:
     """Child: ("start", make_frontend, sequence, mode, rate, cursor, state), then frames until the
     end or ("close",); answers ("state",) between frames; reports ("frame", ...), ("done", ...)."""
-    stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    stdin, stdout = _private_pipes()
     lock = threading.Lock()
 
     def send(msg) -> None:
@@ -366,7 +402,8 @@ def _serve() -> None:
 def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, cursor: int,
            commands: queue.Queue, send) -> None:
     t0 = time.perf_counter()
-    source = _FrameSource(sequence, int(cursor), mode == "live", rate, prepare=frontend.prepare)
+    source = _FrameSource(sequence, int(cursor), mode == "live", rate, prepare=frontend.prepare,
+                          preparer=frontend.preparer())
 
     def serve_commands(block: bool) -> bool:
         """Answer pending commands; False when the parent asks the child to end."""

@@ -86,51 +86,68 @@ def _frames(frontend: Frontend, sequence: Sequence, indices: Iterable[int],
 
 def _frames_in_process(preparer: Callable[[Frame], Any], sequence: Sequence, indices: list[int],
                        ahead: int) -> Iterator[tuple[Any, Any]]:
-    """(prepared frame, prepared frame) in order, read and prepared by a spawned child process
-    that stays up to `ahead` frames in front (a bounded queue). An error in the child is raised
-    here; leaving the loop early (an exception, Ctrl-C) stops the child."""
+    """(prepared frame, prepared frame) in order, read and prepared by a child process that stays
+    up to `ahead` frames in front."""
+    for item in iterate_in_process(_prepare_each, (preparer, sequence, indices), ahead):
+        yield item, item
+
+
+def _prepare_each(preparer: Callable[[Frame], Any], sequence: Sequence, indices: list[int]) -> Iterator[Any]:
+    for i in indices:
+        yield preparer(sequence[i])
+
+
+def iterate_in_process(produce: Callable[..., Iterator[Any]], args: tuple, ahead: int = 0) -> Iterator[Any]:
+    """The items of produce(*args), computed in a spawned child process (produce and args must
+    pickle) and yielded here in order; ahead > 0: at most that many wait in the queue (the child
+    blocks), 0: no bound. An error in the child is raised here; leaving the loop early (an
+    exception, Ctrl-C, close()) stops the child."""
     ctx = mp.get_context("spawn")  # not fork: this process may hold threads and OpenMP / OpenCV pools
-    work, frames = ctx.Queue(), ctx.Queue(maxsize=ahead)
-    child = ctx.Process(target=_read_ahead, args=(work, frames), name="segs-frames", daemon=True)
+    work, items = ctx.Queue(), ctx.Queue(maxsize=max(int(ahead), 0))
+    child = ctx.Process(target=_produce_into, args=(work, items), name="segs-frames", daemon=True)
     child.start()
     # the work goes through a queue, not the start arguments: a child that dies while starting (a
     # script without a main guard) would leave a large argument write blocked for ever
-    work.put((preparer, sequence, indices))
+    work.put((produce, args))
     try:
-        for _ in indices:
-            kind, item = _next_item(frames, child)
+        while True:
+            kind, item = _next_item(items, child)
+            if kind == "end":
+                return
             if kind == "error":
                 raise item
-            yield item, item
+            yield item
     finally:
         if child.is_alive():
             child.terminate()
         child.join()
-        for q in (work, frames):
+        for q in (work, items):
             q.cancel_join_thread()
             q.close()
 
 
-def _next_item(frames, child) -> tuple[str, Any]:
+def _next_item(items, child) -> tuple[str, Any]:
     while True:
         try:
-            return frames.get(timeout=0.5)
+            return items.get(timeout=0.5)
         except Empty:
-            if not child.is_alive() and frames.empty():
+            if not child.is_alive() and items.empty():
                 raise RuntimeError(f"the frame reader process ended (exit code {child.exitcode}) before "
                                    "sending every frame; a script that starts it needs an "
                                    "`if __name__ == '__main__':` guard") from None
 
 
-def _read_ahead(work, frames) -> None:
-    """Child process: prepare each frame in order into `frames`; an error goes there as ("error", e)."""
+def _produce_into(work, items) -> None:
+    """Child process: every item of produce(*args) into `items`, then ("end", None); an error goes
+    there as ("error", e)."""
     try:
-        preparer, sequence, indices = work.get()
-        for i in indices:
-            frames.put(("frame", preparer(sequence[i])))
+        produce, args = work.get()
+        for item in produce(*args):
+            items.put(("item", item))
+        items.put(("end", None))
     except BaseException as e:  # noqa: BLE001 - every failure is reported to the parent
         try:
             pickle.dumps(e)
         except Exception:  # noqa: BLE001
             e = RuntimeError(f"{type(e).__name__}: {e}")
-        frames.put(("error", e))
+        items.put(("error", e))
