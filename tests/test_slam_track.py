@@ -31,6 +31,30 @@ def test_track_writes_trajectory_keyframes_and_metrics(tmp_path):
     assert m["ate_rmse_m"] == saved["ate_rmse_m"]
 
 
+def test_an_interrupted_track_keeps_the_poses_so_far_and_looks_unfinished(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while tracking (simulated at frame 6): trajectory_partial.txt holds frames 0-5, no
+    trajectory.txt or tracking.json is written, the reader process is stopped."""
+    import multiprocessing
+
+    from segs.slam.orb import OrbFrontend
+
+    process = OrbFrontend.process
+
+    def interrupted_at_6(self, frame):
+        if frame.index == 6:
+            raise KeyboardInterrupt
+        return process(self, frame)
+
+    monkeypatch.setattr(OrbFrontend, "process", interrupted_at_6)
+    with pytest.raises(KeyboardInterrupt):
+        run(compose(BASE, output_dir=str(tmp_path)), progress=False)
+    lines = [ln for ln in (tmp_path / "trajectory_partial.txt").read_text().splitlines() if ln.strip()]
+    assert len(lines) == 6
+    assert not (tmp_path / "trajectory.txt").exists() and not (tmp_path / "tracking.json").exists()
+    assert "interrupted; 6 of 12 frames tracked" in capsys.readouterr().err
+    assert not [p for p in multiprocessing.active_children() if p.name == "segs-frames"]
+
+
 def test_track_rejects_unknown_slam_keys_as_user_error(tmp_path):
     cfg = compose(BASE + ["+slam.tracking.no_such_key=1"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match="no_such_key"):

@@ -70,15 +70,21 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
 
         bar = tqdm(total=len(sequence), desc="tracking", leave=False, disable=not sys.stderr.isatty())
     t0 = time.perf_counter()
-    if isinstance(frontend, FrontendProcess):
-        try:
-            result = _run_process(frontend, bar)
-        finally:
-            frontend.close()
-    else:
-        # the next frames are read and their features built in a child process while one is tracked
-        result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None,
-                              prefetch=PREFETCH, reader="process")
+    try:
+        if isinstance(frontend, FrontendProcess):
+            try:
+                result = _run_process(frontend, bar)
+            finally:
+                frontend.close()
+        else:
+            # the next frames are read and their features built in a child process while one is tracked
+            result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None,
+                                  prefetch=PREFETCH, reader="process")
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        _write_partial(out, sequence, frontend)
+        raise
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
@@ -143,6 +149,20 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     return metrics
 
 
+def _write_partial(out: Path, sequence, frontend) -> None:
+    """Ctrl-C: the poses tracked so far into trajectory_partial.txt (TUM); no trajectory.txt or
+    tracking.json, so an interrupted run never looks finished."""
+    try:
+        idx, c2w = estimated_c2w(frontend.trajectory())
+        path = out / "trajectory_partial.txt"
+        if len(idx):
+            write_tum(path, sequence.timestamps[idx], c2w)
+        print(f"\nsegs.track: interrupted; {len(idx)} of {len(sequence)} frames tracked"
+              + (f", their poses in {path}" if len(idx) else ""), file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - the interrupt itself must not be masked
+        print(f"\nsegs.track: interrupted; the partial trajectory could not be written ({exc})", file=sys.stderr)
+
+
 def _run_process(frontend: FrontendProcess, bar) -> RunResult:
     """Wait for a frontend process to track the sequence; process_s is the child's own time
     in process() (its throughput), finish_s is not separated from it (0)."""
@@ -158,7 +178,10 @@ def _run_process(frontend: FrontendProcess, bar) -> RunResult:
 @hydra.main(config_path="../../conf", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
     with user_errors_exit():
-        metrics = run(cfg)
+        try:
+            metrics = run(cfg)
+        except KeyboardInterrupt:
+            sys.exit(130)
     return metrics.get("ate_rmse_m")
 
 
