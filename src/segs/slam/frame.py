@@ -7,7 +7,6 @@ virtual baseline), so that RGB-D and stereo share one code path downstream.
 from __future__ import annotations
 
 import time
-
 from dataclasses import dataclass, field
 
 import numpy as np

@@ -119,6 +119,7 @@ class OrbFrontend(Frontend):
         return self.builder.timed_build(frame)
 
     def preparer(self) -> Callable[[Frame], SlamFrame]:
+        """prepare() as a picklable callable (the frame builder's), for a reader process."""
         return self.builder.timed_build
 
     def process(self, frame: Frame | SlamFrame) -> FrameResult:

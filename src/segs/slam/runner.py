@@ -133,8 +133,8 @@ def _next_item(items, child) -> tuple[str, Any]:
         except Empty:
             if not child.is_alive() and items.empty():
                 raise RuntimeError(f"the frame reader process ended (exit code {child.exitcode}) before "
-                                   "sending every frame; a script that starts it needs an "
-                                   "`if __name__ == '__main__':` guard") from None
+                                   "sending every frame (at once: the script that starts it lacks an "
+                                   "`if __name__ == '__main__':` guard)") from None
 
 
 def _produce_into(work, items) -> None:
