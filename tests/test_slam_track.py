@@ -55,6 +55,20 @@ def test_an_interrupted_track_keeps_the_poses_so_far_and_looks_unfinished(tmp_pa
     assert not [p for p in multiprocessing.active_children() if p.name == "segs-frames"]
 
 
+def test_write_trajectory_writes_the_tracked_frames_or_an_empty_file(tmp_path):
+    import numpy as np
+
+    from segs.trajectory import write_trajectory
+
+    w2c = np.eye(4)
+    w2c[:3, 3] = [1.0, 2.0, 3.0]
+    assert write_trajectory(tmp_path / "t.txt", np.array([0.0, 0.5, 1.0]), {2: w2c, 0: np.eye(4)}) == 2
+    rows = [ln.split() for ln in (tmp_path / "t.txt").read_text().splitlines() if ln.strip()]
+    assert [float(r[0]) for r in rows] == [0.0, 1.0] and [float(v) for v in rows[1][1:4]] == [-1.0, -2.0, -3.0]
+    assert write_trajectory(tmp_path / "e.txt", np.array([0.0]), {}) == 0
+    assert (tmp_path / "e.txt").read_text() == ""
+
+
 def test_track_rejects_unknown_slam_keys_as_user_error(tmp_path):
     cfg = compose(BASE + ["+slam.tracking.no_such_key=1"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match="no_such_key"):

@@ -26,7 +26,7 @@ from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
 from segs.slam.process import FrontendProcess
 from segs.slam.runner import RunResult, run_sequence
-from segs.trajectory import ate, estimated_c2w, write_tum
+from segs.trajectory import ate, write_trajectory
 
 log = logging.getLogger("segs.track")
 # frames read and prepared ahead of tracking, in a child process (slam_mode=interleaved): enough to
@@ -90,11 +90,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         bar.close()
 
     traj = frontend.trajectory()
-    idx, c2w = estimated_c2w(traj)
-    if len(idx):
-        write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
-    else:  # nothing tracked: an empty trajectory file, ATE n/a
-        (out / "trajectory.txt").write_text("")
+    write_trajectory(out / "trajectory.txt", sequence.timestamps, traj)  # nothing tracked: empty, ATE n/a
     kfs = frontend.keyframe_frames()
     with open(out / "keyframes.txt", "w") as f:
         f.write("# kf_id frame_index timestamp\n")
@@ -153,12 +149,10 @@ def _write_partial(out: Path, sequence, frontend) -> None:
     """Ctrl-C: the poses tracked so far into trajectory_partial.txt (TUM); no trajectory.txt or
     tracking.json, so an interrupted run never looks finished."""
     try:
-        idx, c2w = estimated_c2w(frontend.trajectory())
-        path = out / "trajectory_partial.txt"
-        if len(idx):
-            write_tum(path, sequence.timestamps[idx], c2w)
-        print(f"\nsegs.track: interrupted; {len(idx)} of {len(sequence)} frames tracked"
-              + (f", their poses in {path}" if len(idx) else ""), file=sys.stderr)
+        traj, path = frontend.trajectory(), out / "trajectory_partial.txt"
+        n = write_trajectory(path, sequence.timestamps, traj) if traj else 0
+        print(f"\nsegs.track: interrupted; {n} of {len(sequence)} frames tracked"
+              + (f", their poses in {path}" if n else ""), file=sys.stderr)
     except Exception as exc:  # noqa: BLE001 - the interrupt itself must not be masked
         print(f"\nsegs.track: interrupted; the partial trajectory could not be written ({exc})", file=sys.stderr)
 

@@ -29,6 +29,17 @@ def estimated_c2w(trajectory: dict[int, np.ndarray]) -> tuple[np.ndarray, np.nda
     return idx, c2w
 
 
+def write_trajectory(path: str | Path, timestamps: np.ndarray, trajectory: dict[int, np.ndarray]) -> int:
+    """Frame-index-keyed w2c dict -> TUM file of those frames at timestamps[index] (an empty file
+    when the dict is empty: evo writes none); returns the number of poses written."""
+    idx, c2w = estimated_c2w(trajectory)
+    if len(idx):
+        write_tum(path, np.asarray(timestamps)[idx], c2w)
+    else:
+        Path(path).write_text("")
+    return len(idx)
+
+
 def write_tum(path: str | Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
     """Write camera-to-world poses [M,4,4] at timestamps [M] in TUM format (tx ty tz qx qy qz qw)."""
     path = Path(path)
