@@ -215,4 +215,5 @@ def make_frontend(cfg: DictConfig, sequence):
         return frontend
     from segs.slam.process import FrontendProcess
 
-    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0))
+    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0),
+                           uses_ground_truth_poses=frontend.uses_ground_truth_poses)
