@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from plyfile import PlyData
 
@@ -81,6 +82,7 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     assert bridge.cursor == state["callbacks"]["SlamBridge"]["cursor"] or bridge.finished
 
 
+@pytest.mark.slow
 def test_afme_beats_no_afme_on_test_views_under_an_exposure_change(tiny_cfg, tmp_path):
     """The paper's AfME claim on a sequence built to isolate it: the camera turns in place (every
     surface point keeps one viewing ray, so view-dependent colour cannot explain the frame's
