@@ -146,6 +146,10 @@ def validate(cfg: DictConfig, mapper: bool = True) -> None:
             continue
         if not ok(value):
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
+    if OmegaConf.select(cfg, "eval", default=None) is not None:
+        from segs.eval_config import eval_config
+
+        eval_config(cfg.eval)
     if not mapper:
         return
     from segs.modules.config import mapping_config, model_config, raster_config

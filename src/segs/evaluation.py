@@ -17,6 +17,7 @@ import torch
 from tqdm import tqdm
 
 from segs.callbacks.memory import peak_rss_mb
+from segs.eval_config import EvalConfig
 from segs.modules.contract import GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.run_folder import write_json_atomic
@@ -115,7 +116,7 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
     return summary
 
 
-def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg, out: Path, timing: dict, notes: dict | None = None,
+def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg: EvalConfig, out: Path, timing: dict, notes: dict | None = None,
              watch: Callable[[str], None] | None = None, provenance: dict | None = None) -> dict:  # fmt: skip
     """Compute and write every result file of a run; returns the metrics dict (metrics.json, last).
 
@@ -126,12 +127,12 @@ def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg, out: Path, timi
     frontend = bridge.frontend
     trajectory = frontend.trajectory()
     test = bridge.test_frames()
-    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)),
-                               out, bool(eval_cfg.get("progress", True)), float(eval_cfg.get("active_opacity", 0.005)), watch)  # fmt: skip
+    images = render_test_views(module, sequence, trajectory, test, eval_cfg.lpips_weights, eval_cfg.save_renders, out,
+                               eval_cfg.progress, eval_cfg.active_opacity, watch)  # fmt: skip
     idx, c2w = estimated_c2w(trajectory)
     write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
-    ate_result = frontend_ate(frontend, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.get("ate_align", "se3"))
-    if eval_cfg.get("write_ply", True):
+    ate_result = frontend_ate(frontend, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.ate_align)
+    if eval_cfg.write_ply:
         module.export_ply(out / "point_cloud.ply")
     summary = run_summary(module, sequence, bridge, timing)
     metrics = {

@@ -26,6 +26,7 @@ from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
 from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import DataError, TrackingFailed
+from segs.eval_config import eval_config
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
@@ -147,12 +148,13 @@ def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper,
         bridge.complete_sequence()
         timing = {"steps": trainer.global_step, "fit_s": record.fit_seconds(), "wall_s": record.wall_seconds(), "sessions": record.sessions}
         made = _provenance(cfg, sequence, module)
-        if not cfg.eval.enabled:
+        evaluation = eval_config(cfg.eval)
+        if not evaluation.enabled:
             metrics = write_not_evaluated(module, sequence, bridge, out, timing, notes, made)
             print(f"\nsegs: results in {out} (eval.enabled=false: no test view rendered)\n  {metrics['iterations']} iterations, "
                   f"{metrics['anchors']} anchors; metrics.json{', checkpoints/final.ckpt' if saved['final'] else ''}")  # fmt: skip
             return metrics
-        metrics = evaluate(module, sequence, bridge, cfg.eval, out, timing, notes, watch, made)
+        metrics = evaluate(module, sequence, bridge, evaluation, out, timing, notes, watch, made)
     _print_summary(out, metrics)
     return metrics
 
