@@ -30,7 +30,7 @@ from segs.trajectory import frontend_ate, lost_ranges, write_trajectory
 
 log = logging.getLogger("segs.track")
 # frames read and prepared ahead of tracking, in a child process (slam_mode=interleaved): enough to
-# cover a keyframe's local mapping (docs/performance.md "The frame reader in a process of its own")
+# cover a keyframe's local mapping (docs/decisions/014-frame-reader-process.md)
 PREFETCH = 16
 REASON = "reason"  # why tracking.json's ate has no figure
 
