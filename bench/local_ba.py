@@ -36,8 +36,8 @@ import gtsam
 import numpy as np
 
 from segs.config import compose, instantiate, make_sequence
-from segs.slam import optimize
-from segs.slam.optimize import NO_FACTORS, BundleAdjuster
+from segs.slam.estimation import optimize
+from segs.slam.estimation.optimize import NO_FACTORS, BundleAdjuster
 
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"

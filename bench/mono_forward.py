@@ -45,8 +45,8 @@ import numpy as np
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.data.synthetic import SyntheticSequence
 from segs.slam.config import FeatureConfig
-from segs.slam.features import OrbExtractor, to_gray
-from segs.slam.matching import match_descriptors
+from segs.slam.estimation.matching import match_descriptors
+from segs.slam.features.extractor import OrbExtractor, to_gray
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from segs.data.tum import TumSequence
-from segs.slam.features import OrbExtractor, to_gray
-from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
+from segs.slam.features.extractor import OrbExtractor, to_gray
+from segs.slam.map.vocabulary import KeyFrameDatabase, Vocabulary
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"

@@ -112,6 +112,59 @@ def test_no_slam_module_imports_the_frontend():
     assert not users, users
 
 
+# segs.slam's stages (docs/architecture.md): a unit imports from segs.slam only itself and the units
+# of earlier layers; tracking (per frame) and backend (per keyframe) never import each other (orb.py
+# wires them), the frame loops (runtime) see only the Frontend interface. The top-level modules of
+# SLAM_SHARED are one unit; every subpackage or module of segs.slam must be listed here.
+SLAM_SHARED = {"base", "config", "geometry", "outbox", "sensor", "state"}
+SLAM_LAYERS = (
+    ("native",),  # C++ kernels
+    ("shared",),  # the Frontend interface and MapUpdate, parameters, sensor, geometry, outbox
+    ("features", "runtime"),  # per frame, ahead of tracking; the frame loops around any Frontend
+    ("map", "estimation"),  # shared state; matching and optimisation shared by the stages
+    ("tracking", "backend"),  # per frame; per keyframe
+    ("orb", "known_poses"),  # the frontends
+)
+
+
+def _slam_unit(module: str) -> str:
+    """segs.slam.<unit>[.<module>] -> its unit in SLAM_LAYERS ("shared" for SLAM_SHARED)."""
+    name = module.split(".")[2]
+    return "shared" if name in SLAM_SHARED else name
+
+
+def _slam_stage_violations(graph: dict[str, set[str]]) -> list[str]:
+    """Imports of graph's segs.slam modules that break SLAM_LAYERS, and units not listed there."""
+    layer = {unit: i for i, units in enumerate(SLAM_LAYERS) for unit in units}
+    modules = [m for m in graph if m.startswith("segs.slam.")]
+    bad = [f"segs.slam unit {u!r} is not in SLAM_LAYERS" for u in sorted({_slam_unit(m) for m in modules} - set(layer))]
+    for mod in modules:
+        unit = _slam_unit(mod)
+        for dep in sorted(graph[mod]):
+            if dep.startswith("segs.slam.") and _slam_unit(dep) != unit and layer.get(_slam_unit(dep), -1) >= layer.get(unit, -1):
+                bad.append(f"{mod} ({unit}) imports {dep} ({_slam_unit(dep)})")
+    return bad
+
+
+def test_slam_stages_import_only_earlier_stages():
+    assert not _slam_stage_violations(_module_graph())
+
+
+def test_the_slam_stage_rule_finds_a_violation():
+    graph = {"segs.slam.map.map": {"segs.slam.features.frame", "segs.slam.geometry"},  # allowed
+             "segs.slam.features.frame": {"segs.slam.geometry"},
+             "segs.slam.geometry": set(),
+             "segs.slam.tracking.tracker": {"segs.slam.backend.local_mapping"},  # same layer
+             "segs.slam.backend.local_mapping": {"segs.slam.orb"},  # a later layer
+             "segs.slam.orb": set(),
+             "segs.slam.extra.x": set()}  # not listed
+    assert _slam_stage_violations(graph) == [
+        "segs.slam unit 'extra' is not in SLAM_LAYERS",
+        "segs.slam.tracking.tracker (tracking) imports segs.slam.backend.local_mapping (backend)",
+        "segs.slam.backend.local_mapping (backend) imports segs.slam.orb (orb)",
+    ]
+
+
 def test_the_circle_finder_finds_a_circle():
     assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from segs.data.synthetic import SyntheticSequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runner import run_sequence
+from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 

@@ -11,7 +11,7 @@ import pytest
 from segs.data.synthetic import SyntheticSequence
 from segs.slam.geometry import cam_center
 from segs.slam.orb import OrbFrontend
-from segs.slam.runner import run_sequence
+from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,9 +73,9 @@ def test_monocular_bundle_adjustment_keeps_the_gauge_scale():
     """With one fixed keyframe the monocular scale is a free gauge: BA's result is scaled back
     about the fixed camera, an exact gauge move (every projection unchanged) restoring the points'
     median distance from it."""
+    from segs.slam.backend.local_mapping import LocalMapper
+    from segs.slam.estimation.optimize import PointSet
     from segs.slam.geometry import project, transform
-    from segs.slam.local_mapping import LocalMapper
-    from segs.slam.optimize import PointSet
 
     rng = np.random.default_rng(0)
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
@@ -130,7 +130,7 @@ def test_two_view_baseline_recovers_each_step():
     seq = SyntheticSequence(sensor="mono", n_frames=8, width=320, height=240, trajectory="forward", speed=0.3)
     frames = [seq[i] for i in range(len(seq))]
     from segs.slam.config import FeatureConfig
-    from segs.slam.features import OrbExtractor
+    from segs.slam.features.extractor import OrbExtractor
     fc = FeatureConfig()
     ex = OrbExtractor.from_config(fc)
     traj, failed, seconds = bench.two_view_odometry(frames, seq.camera.K, ex)

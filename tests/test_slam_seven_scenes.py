@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runner import run_sequence
+from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from segs.data.synthetic import SyntheticSequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runner import run_sequence
+from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 

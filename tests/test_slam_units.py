@@ -11,17 +11,17 @@ import yaml
 from segs.data.synthetic import SyntheticSequence
 from segs.errors import ConfigError
 from segs.slam import config as C
-from segs.slam.features import OrbExtractor, hamming, hamming_matrix, to_gray
-from segs.slam.frame import KeypointGrid
+from segs.slam.features.extractor import OrbExtractor, hamming, hamming_matrix, to_gray
+from segs.slam.features.frame import KeypointGrid
 from segs.slam.geometry import inv_se3, umeyama
-from segs.slam.initialization import MonoInitializer
-from segs.slam.matching import knn_hamming
-from segs.slam.ba_process import BundleAdjusterProcess
-from segs.slam.optimize import (BundleAdjuster, Observations, PointSet, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
+from segs.slam.tracking.initialization import MonoInitializer
+from segs.slam.estimation.matching import knn_hamming
+from segs.slam.backend.ba_process import BundleAdjusterProcess
+from segs.slam.estimation.optimize import (BundleAdjuster, Observations, PointSet, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
                                 refine_pose)
 from segs.slam.orb import OrbFrontend
-from segs.slam.runner import run_sequence
-from segs.slam.vocabulary import Vocabulary, bow_score
+from segs.slam.runtime.runner import run_sequence
+from segs.slam.map.vocabulary import Vocabulary, bow_score
 
 ROOT = Path(__file__).resolve().parents[1]
 K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
@@ -133,7 +133,7 @@ def test_knn_hamming_equals_bfmatcher_knn_including_ties():
 
 
 def test_knn_by_node_is_knn_within_each_vocabulary_node():
-    from segs.slam.matching import _knn_by_node
+    from segs.slam.estimation.matching import _knn_by_node
 
     rng = np.random.default_rng(7)
     a = rng.integers(0, 256, (120, 32), dtype=np.uint8)
@@ -170,7 +170,7 @@ def _grid_frame(rng, n=600, dup_desc=False):
     depth; dup_desc: few distinct descriptors, so that distance ties are common."""
     from types import SimpleNamespace
 
-    from segs.slam.features import Keypoints
+    from segs.slam.features.extractor import Keypoints
 
     uv = rng.uniform([0, 0], [320, 240], (n, 2))
     pool = rng.integers(0, 256, (12 if dup_desc else n, 32), dtype=np.uint8)
@@ -187,7 +187,7 @@ def _grid_frame(rng, n=600, dup_desc=False):
 def test_native_projection_search_equals_numpy(dup_desc, stereo):
     """The C++ kernel (segs.slam.native) returns what the numpy pipeline returns, ties included,
     with queries on cell borders and outside the image."""
-    from segs.slam.matching import nearest_two_in_radius
+    from segs.slam.estimation.matching import nearest_two_in_radius
     from segs.slam.native import kernels
 
     if kernels() is None:
@@ -217,7 +217,7 @@ def test_native_projection_search_equals_numpy(dup_desc, stereo):
 @pytest.mark.parametrize("stereo", [False, True])
 def test_native_pose_solver_equals_numpy(stereo):
     from segs.slam.native import kernels
-    from segs.slam.optimize import _solve_pose
+    from segs.slam.estimation.optimize import _solve_pose
 
     if kernels() is None:
         pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
@@ -242,7 +242,7 @@ def test_native_pose_refinement_equals_numpy(stereo, warm, ur_sigma):
     """ORB-SLAM's PoseOptimization in one C++ call: same pose (to rounding) and same inliers as
     the Python rounds, with outliers to classify, monocular / stereo / RGB-D (ur_sigma)."""
     from segs.slam.native import kernels
-    from segs.slam.optimize import refine_pose
+    from segs.slam.estimation.optimize import refine_pose
 
     if kernels() is None:
         pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
@@ -281,7 +281,7 @@ def test_native_map_bookkeeping_equals_python():
     """Keyframe culling's redundancy count and the point-geometry gather give the Python loops'
     results on a real map (synthetic monocular orbit: many observers per point), including after
     a keyframe is removed."""
-    from segs.slam.local_mapping import redundant_points
+    from segs.slam.backend.local_mapping import redundant_points
     from segs.slam.native import kernels
 
     if kernels() is None:
@@ -619,9 +619,9 @@ def _as_legacy_v1(state: dict) -> dict:
     fields missing), frame poses as ("kf", id) / ("rel", id, rel) / ("abs", None, w2c) tuples."""
     import pickle
 
-    from segs.slam.local_mapping import LocalMapper
-    from segs.slam.loop_closing import LoopCloser
-    from segs.slam.tracking import Tracker
+    from segs.slam.backend.local_mapping import LocalMapper
+    from segs.slam.backend.loop_closing import LoopCloser
+    from segs.slam.tracking.tracker import Tracker
 
     d = pickle.loads(state["blob"])
     poses = d["tracker"].pop("poses")
@@ -647,7 +647,7 @@ def test_tracking_state_enum_round_trips_checkpoint():
     """The tracker state is a TrackingState after a checkpoint round trip, and a checkpoint written
     before the Enum, FramePoses and MapOutbox ("segs.orb.v1") loads and tracks on exactly as the
     frontend that wrote it does."""
-    from segs.slam.tracking import TrackingState
+    from segs.slam.tracking.tracker import TrackingState
 
     seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
     fe = OrbFrontend(seq.camera, "rgbd")
@@ -672,7 +672,7 @@ def test_tracking_state_enum_round_trips_checkpoint():
 
 
 def test_frame_poses_follow_their_keyframe_and_read_the_legacy_tuples():
-    from segs.slam.frame_poses import FramePoses
+    from segs.slam.tracking.frame_poses import FramePoses
 
     kf_w2c = {0: np.eye(4), 1: np.eye(4)}
     kf_w2c[1][:3, 3] = [1.0, 0, 0]
@@ -702,7 +702,7 @@ def test_keypoint_depth_lookup_is_the_3x3_dilation_and_erosion_test():
     whole-image dilation / erosion it replaces, with holes, depth edges and image borders."""
     import cv2
 
-    from segs.slam.frame import FrameBuilder
+    from segs.slam.features.frame import FrameBuilder
 
     rng = np.random.default_rng(5)
     depth = (2.0 + 0.002 * np.arange(64) + rng.uniform(0, 0.01, (48, 64))).astype(np.float32)  # a slanted wall

@@ -10,10 +10,10 @@ import pytest
 
 from segs.data.synthetic import SyntheticSequence
 from segs.errors import ConfigError, DataError
-from segs.slam import vocabulary as V
 from segs.slam.config import FeatureConfig
-from segs.slam.features import OrbExtractor, to_gray
-from segs.slam.vocabulary import KeyFrameDatabase, TrainingConfig, Vocabulary, bow_score
+from segs.slam.features.extractor import OrbExtractor, to_gray
+from segs.slam.map import vocabulary as V
+from segs.slam.map.vocabulary import KeyFrameDatabase, TrainingConfig, Vocabulary, bow_score
 
 SMALL = TrainingConfig(k=4, depth=2, views=3, features=FeatureConfig(n_features=300))
 

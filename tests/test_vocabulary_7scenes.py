@@ -10,8 +10,8 @@ import pytest
 
 from segs.data.frame import Frame
 from segs.slam.geometry import inv_se3
+from segs.slam.map.vocabulary import Vocabulary
 from segs.slam.orb import OrbFrontend
-from segs.slam.vocabulary import Vocabulary
 
 ROOT = Path(__file__).resolve().parents[1]
 

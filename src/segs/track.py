@@ -24,8 +24,8 @@ from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
 from segs.provenance import provenance
 from segs.run_folder import write_json_atomic
-from segs.slam.process import FrontendProcess
-from segs.slam.runner import RunResult, run_sequence
+from segs.slam.runtime.process import FrontendProcess
+from segs.slam.runtime.runner import RunResult, run_sequence
 from segs.trajectory import frontend_ate, lost_ranges, write_trajectory
 
 log = logging.getLogger("segs.track")

@@ -31,7 +31,7 @@ from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
 from segs.provenance import provenance
-from segs.slam.process import FrontendProcess
+from segs.slam.runtime.process import FrontendProcess
 
 log = logging.getLogger("segs.train")
 

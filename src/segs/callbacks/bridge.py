@@ -21,7 +21,7 @@ from segs.data.frame import Frame, Sequence
 from segs.errors import TrackingFailed
 from segs.modules.contract import GaussianMapper, TrainingView, to_uint8
 from segs.slam.base import Frontend, MapUpdate
-from segs.slam.process import FrontendProcess
+from segs.slam.runtime.process import FrontendProcess
 
 log = logging.getLogger(__name__)
 

@@ -18,6 +18,7 @@ with the latest keyframe poses by `trajectory()`.
 """
 from __future__ import annotations
 
+import io
 import logging
 import pickle
 import threading
@@ -30,21 +31,21 @@ import numpy as np
 from segs.data.frame import Camera, Frame
 from segs.errors import ConfigError
 from segs.slam import config as C
-from segs.slam.ba_process import BundleAdjusterProcess
+from segs.slam.backend.ba_process import BundleAdjusterProcess
 from segs.slam.base import FrameResult, Frontend, MapUpdate
-from segs.slam.features import OrbExtractor
-from segs.slam.frame import FrameBuilder, SlamFrame
-from segs.slam.frame_poses import FramePoses
-from segs.slam.keyframe_queue import KeyFrameQueue
-from segs.slam.local_mapping import LocalMapper
-from segs.slam.loop_closing import LoopCloser
-from segs.slam.map import KeyFrame, Map
-from segs.slam.optimize import BundleAdjuster
+from segs.slam.features.extractor import OrbExtractor
+from segs.slam.features.frame import FrameBuilder, SlamFrame
+from segs.slam.tracking.frame_poses import FramePoses
+from segs.slam.backend.keyframe_queue import KeyFrameQueue
+from segs.slam.backend.local_mapping import LocalMapper
+from segs.slam.backend.loop_closing import LoopCloser
+from segs.slam.map.map import KeyFrame, Map
+from segs.slam.estimation.optimize import BundleAdjuster
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
-from segs.slam.stereo import StereoMatcher
-from segs.slam.tracking import Tracker
-from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
+from segs.slam.features.stereo import StereoMatcher
+from segs.slam.tracking.tracker import Tracker
+from segs.slam.map.vocabulary import KeyFrameDatabase, Vocabulary
 
 log = logging.getLogger(__name__)
 
@@ -191,7 +192,7 @@ class OrbFrontend(Frontend):
         if fmt not in (STATE_FORMAT, LEGACY_STATE_FORMAT):
             raise ConfigError("slam: checkpoint state is not an OrbFrontend state")
         self.keyframes.stop()
-        data = pickle.loads(state["blob"])
+        data = _unpickle(state["blob"])
         if fmt == LEGACY_STATE_FORMAT:
             data = _from_legacy_state(data)
         data["map"].lock = threading.RLock()
@@ -239,6 +240,39 @@ class OrbFrontend(Frontend):
 
 STATE_FORMAT = "segs.orb.v2"
 LEGACY_STATE_FORMAT = "segs.orb.v1"
+# segs.slam's modules before its stages became subpackages -> where their classes live now: blobs
+# written before the move name the old modules (a module whose name is now a package's, such as
+# segs.slam.map, defines no class in the package's __init__)
+MOVED_MODULES = {
+    "segs.slam.features": "segs.slam.features.extractor",
+    "segs.slam.stereo": "segs.slam.features.stereo",
+    "segs.slam.frame": "segs.slam.features.frame",
+    "segs.slam.map": "segs.slam.map.map",
+    "segs.slam.vocabulary": "segs.slam.map.vocabulary",
+    "segs.slam.matching": "segs.slam.estimation.matching",
+    "segs.slam.optimize": "segs.slam.estimation.optimize",
+    "segs.slam.tracking": "segs.slam.tracking.tracker",
+    "segs.slam.initialization": "segs.slam.tracking.initialization",
+    "segs.slam.frame_poses": "segs.slam.tracking.frame_poses",
+    "segs.slam.keyframe_queue": "segs.slam.backend.keyframe_queue",
+    "segs.slam.local_mapping": "segs.slam.backend.local_mapping",
+    "segs.slam.loop_closing": "segs.slam.backend.loop_closing",
+    "segs.slam.ba_process": "segs.slam.backend.ba_process",
+    "segs.slam.process": "segs.slam.runtime.process",
+    "segs.slam.runner": "segs.slam.runtime.runner",
+}
+
+
+class _MovedModulesUnpickler(pickle.Unpickler):
+    """Finds the classes of a blob that names segs.slam modules by their former names (MOVED_MODULES)."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        return super().find_class(MOVED_MODULES.get(module, module), name)
+
+
+def _unpickle(blob: bytes) -> Any:
+    """A state_dict blob, of this layout or of the modules' former names."""
+    return _MovedModulesUnpickler(io.BytesIO(blob)).load()
 
 
 def _from_legacy_state(data: dict) -> dict:

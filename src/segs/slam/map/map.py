@@ -14,8 +14,8 @@ from itertools import chain
 
 import numpy as np
 
-from segs.slam.features import Keypoints
-from segs.slam.frame import KeypointGrid, SlamFrame
+from segs.slam.features.extractor import Keypoints
+from segs.slam.features.frame import KeypointGrid, SlamFrame
 from segs.slam.geometry import cam_center, inv_se3
 from segs.slam.native import kernels
 

@@ -11,9 +11,9 @@ wheels (public domain, CC0 or CC BY 2.0; checked by SHA-256), each seen as
 most 640x480, gain / gamma / blur / noise / JPEG). Reproduce it (seed fixed) with::
 
     pip install -e ".[vocab]"          # scikit-image and scikit-learn, for their images only
-    python -m segs.slam.vocabulary     # -> src/segs/slam/vocab/orb_k10_l4.npz
+    python -m segs.slam.map.vocabulary # -> src/segs/slam/map/vocab/orb_k10_l4.npz
 
-``python -m segs.slam.vocabulary IMG... --out my.npz`` trains on your own images instead
+``python -m segs.slam.map.vocabulary IMG... --out my.npz`` trains on your own images instead
 (``loop.vocabulary: my.npz`` uses it). docs/data.md ("BoW vocabulary") has the image list,
 licences and the place-recognition recall on 7-Scenes frames.
 """
@@ -33,7 +33,7 @@ import numpy as np
 
 from segs.errors import ConfigError, DataError, UserInputError
 from segs.slam.config import FeatureConfig
-from segs.slam.features import hamming_matrix
+from segs.slam.features.extractor import hamming_matrix
 from segs.slam.native import kernels
 
 DEFAULT_PATH = Path(__file__).with_name("vocab") / "orb_k10_l4.npz"
@@ -391,7 +391,7 @@ def train_from_images(paths: list[str | Path],
                       cfg: TrainingConfig = TrainingConfig()) -> tuple[Vocabulary, int, int]:
     """Vocabulary from the ORB features of `training_views` (each view is an image of the idf)
     -> (vocabulary, descriptors, views)."""
-    from segs.slam.features import OrbExtractor
+    from segs.slam.features.extractor import OrbExtractor
 
     fc = cfg.features
     ex = OrbExtractor.from_config(fc)

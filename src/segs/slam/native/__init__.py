@@ -1,4 +1,4 @@
-"""The frontend's C++ kernels (src/segs/slam/csrc/match.cpp, map.cpp, pose.cpp), built on first use.
+"""The frontend's C++ kernels (src/segs/slam/native/csrc/match.cpp, map.cpp, pose.cpp), built on first use.
 
 The projection search, the motion-only LM and the map bookkeeping loops (see the .cpp files) give
 the results of the numpy / Python code they replace; tests/test_slam_units.py compares the two.

@@ -2,7 +2,7 @@
 
 gtsam keeps the GIL while it optimises, so a bundle adjustment in the mapping thread would stop
 the tracking thread as well; run in a child process it uses another core. The child is a plain
-`python -m segs.slam.ba_process` reading pickled requests on stdin and answering on stdout (no
+`python -m segs.slam.backend.ba_process` reading pickled requests on stdin and answering on stdout (no
 multiprocessing start method, so it works from any main module). Results are the same as
 BundleAdjuster's: the problem travels as numpy arrays.
 """
@@ -15,7 +15,7 @@ import threading
 
 import numpy as np
 
-from segs.slam.optimize import CONVERGED_GAIN, BundleAdjuster
+from segs.slam.estimation.optimize import CONVERGED_GAIN, BundleAdjuster
 
 
 class BundleAdjusterProcess:
@@ -30,7 +30,7 @@ class BundleAdjusterProcess:
         self._lock = threading.Lock()
 
     def _start(self) -> subprocess.Popen:
-        proc = subprocess.Popen([sys.executable, "-m", "segs.slam.ba_process"], stdin=subprocess.PIPE,
+        proc = subprocess.Popen([sys.executable, "-m", "segs.slam.backend.ba_process"], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE)
         pickle.dump(self._args, proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
         proc.stdin.flush()

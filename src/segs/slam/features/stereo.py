@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from segs.slam.features import Keypoints, hamming_pairs
+from segs.slam.features.extractor import Keypoints, hamming_pairs
 from segs.slam.geometry import expand_ranges
 
 

@@ -18,16 +18,16 @@ from typing import Callable, Protocol
 import numpy as np
 
 from segs.slam.config import InitConfig, MatchingConfig, TrackingConfig
-from segs.slam.frame import SlamFrame
-from segs.slam.frame_poses import FramePoses
+from segs.slam.features.frame import SlamFrame
+from segs.slam.tracking.frame_poses import FramePoses
 from segs.slam.geometry import cam_center, inv_se3, orthonormalize, project, transform
-from segs.slam.initialization import MonoInitializer
-from segs.slam.map import KeyFrame, Map
-from segs.slam.matching import TH_HIGH, match_frame_to_kf, search_projection
-from segs.slam.optimize import CHI2_MONO, pnp_ransac, refine_pose
+from segs.slam.tracking.initialization import MonoInitializer
+from segs.slam.map.map import KeyFrame, Map
+from segs.slam.estimation.matching import TH_HIGH, match_frame_to_kf, search_projection
+from segs.slam.estimation.optimize import CHI2_MONO, pnp_ransac, refine_pose
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
-from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
+from segs.slam.map.vocabulary import KeyFrameDatabase, Vocabulary
 from segs.slam.state import StateFields
 
 

@@ -10,7 +10,7 @@ import queue
 import threading
 from typing import Callable
 
-from segs.slam.map import KeyFrame
+from segs.slam.map.map import KeyFrame
 
 
 class KeyFrameQueue:

@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 
 from segs.slam.config import InitConfig
-from segs.slam.frame import SlamFrame
-from segs.slam.matching import match_descriptors, rotation_consistent
+from segs.slam.features.frame import SlamFrame
+from segs.slam.estimation.matching import match_descriptors, rotation_consistent
 
 TH_H = 5.991  # chi2 2 dof
 TH_F = 3.841  # chi2 1 dof (point-to-line)

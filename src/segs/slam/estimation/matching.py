@@ -9,9 +9,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from segs.slam.features import hamming_pairs
+from segs.slam.features.extractor import hamming_pairs
 from segs.slam.native import kernels
-from segs.slam.optimize import CHI2_MONO, CHI2_STEREO
+from segs.slam.estimation.optimize import CHI2_MONO, CHI2_STEREO
 
 TH_HIGH = 100
 TH_LOW = 50

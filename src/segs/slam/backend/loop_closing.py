@@ -18,12 +18,12 @@ import numpy as np
 
 from segs.slam.geometry import inv_se3, transform, umeyama
 from segs.slam.config import LoopConfig
-from segs.slam.map import KeyFrame, Map
-from segs.slam.matching import TH_LOW, match_frame_to_kf
-from segs.slam.optimize import pose_graph
+from segs.slam.map.map import KeyFrame, Map
+from segs.slam.estimation.matching import TH_LOW, match_frame_to_kf
+from segs.slam.estimation.optimize import pose_graph
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
-from segs.slam.vocabulary import KeyFrameDatabase, bow_score
+from segs.slam.map.vocabulary import KeyFrameDatabase, bow_score
 from segs.slam.state import StateFields
 
 CHI2_SIM3 = 9.21

@@ -15,13 +15,13 @@ import numpy as np
 
 from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
 from segs.slam.config import MappingConfig, MatchingConfig
-from segs.slam.map import KeyFrame, Map
+from segs.slam.map.map import KeyFrame, Map
 from segs.slam.native import kernels
-from segs.slam.matching import TH_LOW, match_for_triangulation, nearest_two_in_radius, unique_targets
-from segs.slam.optimize import CONVERGED_GAIN, BundleAdjuster, Observations, PointSet, reproj_chi2
+from segs.slam.estimation.matching import TH_LOW, match_for_triangulation, nearest_two_in_radius, unique_targets
+from segs.slam.estimation.optimize import CONVERGED_GAIN, BundleAdjuster, Observations, PointSet, reproj_chi2
 from segs.slam.outbox import MapOutbox
 from segs.slam.sensor import SensorSetup
-from segs.slam.vocabulary import KeyFrameDatabase, Vocabulary
+from segs.slam.map.vocabulary import KeyFrameDatabase, Vocabulary
 from segs.slam.state import StateFields
 
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from segs.data.frame import Camera, Frame
-from segs.slam.features import Keypoints, OrbExtractor, to_gray
+from segs.slam.features.extractor import Keypoints, OrbExtractor, to_gray
 from segs.slam.geometry import expand_ranges
-from segs.slam.stereo import StereoMatcher
+from segs.slam.features.stereo import StereoMatcher
 
 
 class KeypointGrid:
