@@ -30,6 +30,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import cv2
 import numpy as np
 from scipy.optimize import least_squares

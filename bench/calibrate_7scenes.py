@@ -24,6 +24,10 @@ import itertools
 import json
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import cv2
 import numpy as np
 

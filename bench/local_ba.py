@@ -32,6 +32,10 @@ import statistics
 import time
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import gtsam
 import numpy as np
 

@@ -39,6 +39,10 @@ import sys
 import time
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import cv2
 import numpy as np
 

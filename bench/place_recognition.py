@@ -21,6 +21,10 @@ import json
 import sys
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import numpy as np
 
 from segs.data.tum import TumSequence

@@ -25,6 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import torch
 
 from segs.raster import _cpu_backend, _torch_backend, available_backends, rasterize

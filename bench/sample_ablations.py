@@ -21,6 +21,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,6 +18,10 @@ import argparse
 import json
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import numpy as np
 import torch
 import torch.nn.functional as F

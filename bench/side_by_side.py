@@ -28,6 +28,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
 # sequence -> (experiment, overrides); "synthetic" is small and needs no data (used by the tests)

@@ -42,6 +42,10 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import lightning as L
 import torch
 

@@ -30,6 +30,10 @@ import sys
 import time
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import numpy as np
 
 from segs.data.synthetic import SyntheticSequence

@@ -18,6 +18,10 @@ import platform
 import time
 from pathlib import Path
 
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
 import numpy as np
 import torch
 

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
+from segs import process_settings
 from segs.config import compose
+
+
+def pytest_configure(config):
+    """The process settings of segs's programs, before a test module loads torch."""
+    process_settings.apply()
+
 
 TINY = [
     "+experiment=synthetic",

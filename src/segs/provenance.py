@@ -18,6 +18,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from segs import process_settings
+
 # the folder holding src/ when the package runs from a checkout (pip install -e .)
 _CHECKOUT = Path(__file__).resolve().parents[2]
 # slam._target_ -> the frontend's short name (conf/slam/<name>.yaml)
@@ -103,6 +105,7 @@ def provenance(cfg: DictConfig, sensor: str, raster_backend: str | None = None, 
         "raster_backend": raster_backend,
         "device": device,
         "threads": threads(),
+        "malloc": process_settings.malloc_setting(),  # "kept": the program applied segs.process_settings
         "seed": OmegaConf.select(cfg, "seed", default=None),
         "overrides": command_overrides(),
         "segs_version": _version("segs"),

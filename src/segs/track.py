@@ -20,6 +20,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from segs import process_settings
 from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
 from segs.provenance import provenance
@@ -165,6 +166,7 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    process_settings.apply()  # nothing above loads torch (docs/decisions/process-settings.md)
     if not any(a.startswith(("task_name=", "+task_name=", "++task_name=")) for a in sys.argv[1:]):
         sys.argv.append("task_name=track")
     main()

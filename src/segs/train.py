@@ -6,6 +6,11 @@ checkpoint into the Hydra run folder.
 """
 from __future__ import annotations
 
+if __name__ == "__main__":  # the program: process settings before torch loads (docs/decisions/process-settings.md)
+    from segs import process_settings
+
+    process_settings.apply()
+
 import contextlib
 import logging
 import sys

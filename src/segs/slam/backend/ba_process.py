@@ -15,6 +15,7 @@ import threading
 
 import numpy as np
 
+from segs import process_settings
 from segs.slam.estimation.optimize import CONVERGED_GAIN, BundleAdjuster
 
 
@@ -94,4 +95,5 @@ def _serve() -> None:
 
 
 if __name__ == "__main__":
+    process_settings.apply()
     _serve()

@@ -31,6 +31,7 @@ from typing import Iterator
 
 import numpy as np
 
+from segs import process_settings
 from segs.errors import ConfigError, DataError, UserInputError
 from segs.slam.config import FeatureConfig
 from segs.slam.features.extractor import hamming_matrix
@@ -435,4 +436,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    process_settings.apply()
     main()

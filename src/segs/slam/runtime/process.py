@@ -33,6 +33,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from segs import process_settings
 from segs.data.frame import Frame, Sequence
 from segs.errors import ConfigError
 from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
@@ -443,4 +444,5 @@ def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, curso
 
 
 if __name__ == "__main__":
+    process_settings.apply()
     _serve()

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from queue import Empty
 from typing import Any, Callable, Iterable, Iterator
 
+from segs import process_settings
 from segs.data.frame import Frame, Sequence
 from segs.errors import ConfigError
 from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
@@ -140,6 +141,7 @@ def _next_item(items, child) -> tuple[str, Any]:
 def _produce_into(work, items) -> None:
     """Child process: every item of produce(*args) into `items`, then ("end", None); an error goes
     there as ("error", e)."""
+    process_settings.apply()  # a spawned process: nothing of its parent's allocator settings
     try:
         produce, args = work.get()
         for item in produce(*args):

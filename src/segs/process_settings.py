@@ -1,0 +1,60 @@
+"""Process-wide settings of segs's programs, applied by each entry point before torch loads.
+
+`apply()` is called by the programs, never by an import (docs/decisions/process-settings.md):
+`python -m segs.train` and `segs.track`, the child processes (`segs.slam.runtime.process`,
+`segs.slam.backend.ba_process`, the frame reader of `segs.slam.runtime.runner`), the vocabulary
+trainer, bench/_harness.py and tests/conftest.py. It sets
+
+- `OMP_WAIT_POLICY=PASSIVE` unless the environment sets it: PyTorch's OpenMP threads spin after
+  every operation by default; on a 2-core machine shared with anything else that makes training
+  iterations 3-10x slower (docs/decisions/019-omp-wait-policy.md). libgomp reads it once, when
+  torch loads: a call after that warns, and the child processes inherit it;
+- with glibc, an allocator that keeps freed heap memory for the next frame (`SEGS_MALLOC=default`
+  opts out; docs/decisions/018-freed-memory-kept.md). Per process: each child calls apply() too.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+import warnings
+
+# glibc's <malloc.h> parameter numbers and the values set: allocations up to 64 MB from the heap,
+# up to 256 MB of freed heap kept
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD, TRIM_THRESHOLD = 64 << 20, 256 << 20
+_state = {"malloc": "default"}
+
+
+def apply() -> None:
+    """Set OMP_WAIT_POLICY=PASSIVE (unless set) and keep freed memory (module doc); idempotent."""
+    if "OMP_WAIT_POLICY" not in os.environ:
+        if "torch" in sys.modules:
+            warnings.warn("segs.process_settings.apply() after torch was imported: OMP_WAIT_POLICY=PASSIVE does not "
+                          "reach its OpenMP threads (call apply() before importing torch)", RuntimeWarning, stacklevel=2)
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    _reuse_freed_memory()
+
+
+def malloc_setting() -> str:
+    """"kept" once apply() set glibc's thresholds in this process, else "default" (run records)."""
+    return _state["malloc"]
+
+
+def _reuse_freed_memory() -> None:
+    """glibc: serve allocations up to 64 MB from the heap and keep up to 256 MB of freed heap
+    (mallopt M_MMAP_THRESHOLD / M_TRIM_THRESHOLD). By default every array above 128 kB (a frame's
+    float image, its pyramid, depth, ...) is a fresh mmap whose pages fault in one by one when
+    first written and go back to the kernel when freed: 2.0 million page faults and 7.5 s of
+    system time in a 20 s live run of 600 frames, against 70 thousand and 2.2 s with this
+    (docs/decisions/018-freed-memory-kept.md). SEGS_MALLOC=default leaves glibc's settings;
+    other C libraries are left alone."""
+    if os.environ.get("SEGS_MALLOC") == "default" or not sys.platform.startswith("linux"):
+        return
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):  # not glibc
+        return
+    mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+    mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+    _state["malloc"] = "kept"

@@ -1,0 +1,92 @@
+"""Importing segs changes nothing process-wide; its programs apply the process settings
+(OMP_WAIT_POLICY=PASSIVE, glibc's freed memory kept) themselves, before torch loads."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import TINY
+
+ROOT = Path(__file__).resolve().parents[1]
+# 48 MB: above glibc's largest dynamic mmap threshold (32 MB), below the kept-memory setting (64 MB)
+PROBE = """
+import ctypes, json, os, sys, warnings
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks",
+                                                "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype, libc.malloc.restype, libc.free.argtypes = MallInfo2, ctypes.c_void_p, [ctypes.c_void_p]
+
+def mapped(size=48 << 20):
+    before = libc.mallinfo2().hblks
+    p = libc.malloc(size)
+    after = libc.mallinfo2().hblks
+    libc.free(p)
+    return after > before
+
+import segs, segs.config, segs.track, segs.train  # segs.train loads torch
+out = {"imported": [os.environ.get("OMP_WAIT_POLICY"), mapped(), "torch" in sys.modules]}
+from segs import process_settings
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    process_settings.apply()
+out["applied"] = [os.environ.get("OMP_WAIT_POLICY"), mapped(), process_settings.malloc_setting()]
+out["warnings"] = [str(w.message) for w in caught]
+print(json.dumps(out))
+"""
+
+
+def _env(**extra: str) -> dict:
+    """This environment without the settings (conftest applied them to this process)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "SEGS_MALLOC")}
+    return {**env, "PYTHONPATH": str(ROOT / "src"), **extra}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallinfo2 / mallopt")
+def test_importing_segs_changes_nothing_and_apply_sets_both_settings():
+    res = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=_env(), timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.splitlines()[-1])
+    # import: no policy, a 48 MB block is a fresh mapping (glibc's default), torch loaded
+    assert out["imported"] == [None, True, True]
+    assert out["applied"] == ["PASSIVE", False, "kept"]
+    # torch was loaded first: its OpenMP threads never see the policy, and apply() says so
+    assert len(out["warnings"]) == 1 and "after torch was imported" in out["warnings"][0]
+
+
+def test_segs_malloc_default_opts_out_of_the_allocator_setting():
+    code = "from segs import process_settings as p; p.apply(); print(p.malloc_setting())"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(SEGS_MALLOC="default"), timeout=120)
+    assert res.returncode == 0 and res.stdout.split() == ["default"], res.stderr[-2000:]
+
+
+def _provenance(result: Path) -> dict:
+    return json.loads(result.read_text())["provenance"]
+
+
+def test_segs_track_applies_the_settings(tmp_path):
+    args = ["+experiment=synthetic", "slam=known_poses", "data.n_frames=6", "data.width=96", "data.height=72",
+            f"hydra.run.dir={tmp_path}"]
+    res = subprocess.run([sys.executable, "-m", "segs.track", *args], capture_output=True, text=True, env=_env(), cwd=ROOT,
+                         timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    p = _provenance(tmp_path / "tracking.json")
+    assert p["threads"]["OMP_WAIT_POLICY"] == "PASSIVE" and p["malloc"] == "kept"
+
+
+def test_segs_train_applies_the_settings_before_torch_loads(tmp_path):
+    args = [*TINY, "trainer.max_steps=3", "eval.write_ply=false", "callbacks.periodic_checkpoint.every_n_steps=0",
+            f"hydra.run.dir={tmp_path}"]
+    res = subprocess.run([sys.executable, "-m", "segs.train", *args], capture_output=True, text=True, env=_env(), cwd=ROOT,
+                         timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "after torch was imported" not in res.stderr
+    p = _provenance(tmp_path / "metrics.json")
+    assert p["threads"]["OMP_WAIT_POLICY"] == "PASSIVE" and p["malloc"] == "kept"
