@@ -25,7 +25,6 @@ JSON: outputs/bench/ate_diagnostics.json.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -43,8 +42,8 @@ from segs.data.base import DepthRegistration
 from segs.data.seven_scenes import DEPTH_INTRINSICS, DEPTH_TO_COLOR, SevenScenesSequence, find_sequence, read_pose
 from segs.slam.geometry import fundamental, inv_se3, sampson_distance, umeyama
 
-ROOT = Path(__file__).resolve().parents[1]
-SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+ROOT = _harness.ROOT
+SEVEN_SCENES = _harness.SEVEN_SCENES
 FPS = 30.0
 
 
@@ -177,7 +176,7 @@ def main() -> None:
     p.add_argument("--offsets", type=float, nargs="+", default=[-1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0])
     p.add_argument("--epipolar", type=int, nargs="*", default=[], help="frame gaps of the epipolar test (none: skipped)")
     p.add_argument("--stride", type=int, default=20, help="epipolar test: a pair starts every this many frames")
-    p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "ate_diagnostics.json")
+    p.add_argument("--out", type=Path, default=_harness.OUTPUTS / "ate_diagnostics.json")
     args = p.parse_args()
     if not args.root.is_dir():
         raise SystemExit(f"ate_diagnostics: the 7-Scenes frames are not at {args.root} (--root)")
@@ -191,8 +190,7 @@ def main() -> None:
     res = diagnose(args.trajectory, args.root, args.offsets)
     if args.epipolar:
         res["epipolar"] = epipolar(args.trajectory, args.root, args.epipolar, args.stride)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1))
+    _harness.write_json(args.out, res)
     print(f"ATE with the reader's lever arm {res['reader_lever_cm']} cm: {res['ate_cm_reader']:.2f} cm; "
           f"without: {res['ate_cm_no_lever']:.2f} cm; lever arm fitted ({res['fitted_lever_cm']} cm): "
           f"{res['ate_cm_fitted_lever']:.2f} cm")

@@ -17,11 +17,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
-import os
-import platform
 import statistics
-import subprocess
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -29,22 +25,7 @@ import _harness
 
 _harness.apply_process_settings()  # before torch loads
 
-ROOT = Path(__file__).resolve().parents[1]
-SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
-
-
-def code_version() -> dict:
-    """Which segs the runs import: its source folder, that checkout's commit and whether the
-    folder had uncommitted changes (commit None outside a git checkout)."""
-    import segs
-
-    src = Path(segs.__file__).resolve().parent
-
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", str(src), *args], capture_output=True, text=True).stdout.strip()
-
-    return {"source": str(src), "commit": git("rev-parse", "HEAD") or None,
-            "modified": bool(git("status", "--porcelain", "--", "."))}  # fmt: skip
+SEVEN_SCENES = _harness.SEVEN_SCENES
 
 
 def track(sensor: str, root: str, first: int, overrides: list[str]) -> dict:
@@ -97,12 +78,8 @@ def main() -> None:
         print(f"7-Scenes {a.sensor} {' '.join(a.override) or 'defaults'}: ATE over {len(ates)} first frames "
               f"mean {summary['mean_cm']:.2f} cm, sd {summary['sd_cm']:.2f}, range "
               f"{summary['min_cm']:.2f}-{summary['max_cm']:.2f} cm")  # fmt: skip
-    out = ROOT / "outputs" / "bench" / "ate_spread"
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{datetime.datetime.now():%Y%m%d-%H%M%S}.json"
-    path.write_text(json.dumps({"args": vars(a), "code": code_version(), "machine": platform.platform(), "cpus": os.cpu_count(),
-                                "runs": rows, "summary": summary}, indent=2))  # fmt: skip
-    print(f"-> {path}")
+    path = _harness.OUTPUTS / "ate_spread" / f"{datetime.datetime.now():%Y%m%d-%H%M%S}.json"
+    print(f"-> {_harness.write_json(path, {'args': vars(a), **_harness.record(), 'runs': rows, 'summary': summary})}")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 from pathlib import Path
 
 import _harness
@@ -34,7 +33,7 @@ import numpy as np
 from segs.data.seven_scenes import COLOR_INTRINSICS, SevenScenesSequence
 from segs.slam.geometry import fundamental, sampson_distance
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = _harness.ROOT
 DEPTH_K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])  # the published (depth) intrinsics
 
 
@@ -118,9 +117,9 @@ def registration_search(frames, f: float) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--root", type=Path, default=ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599")
+    p.add_argument("--root", type=Path, default=_harness.SEVEN_SCENES)
     p.add_argument("--focal", type=float, default=COLOR_INTRINSICS[0], help="focal length of the registration search")
-    p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "calibrate_7scenes.json")
+    p.add_argument("--out", type=Path, default=_harness.OUTPUTS / "calibrate_7scenes.json")
     args = p.parse_args()
     seq = SevenScenesSequence(args.root, sensor="mono", intrinsics=[585, 585, 320, 240])
     focal = focal_search(epipolar_pairs(seq), [500, 510, 515, 520, 525, 530, 540, 560, 585])
@@ -130,8 +129,7 @@ def main() -> None:
     reg = registration_search(edge_frames(args.root), args.focal)
     print(f"depth -> colour at f={args.focal:.0f}: tx {reg['tx_m'] * 100:.1f} cm, ty {reg['ty_m'] * 100:.1f} cm, "
           f"cx {reg['cx']:.0f}, cy {reg['cy']:.0f}; edge score {reg['unregistered_score']:.3f} unregistered -> {reg['score']:.3f}")  # fmt: skip
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"sampson_px_by_focal": focal, "sampson_best_focal": f_best, "registration_focal": args.focal, "registration": reg}, indent=1))
+    _harness.write_json(args.out, {"sampson_px_by_focal": focal, "sampson_best_focal": f_best, "registration_focal": args.focal, "registration": reg})
 
 
 if __name__ == "__main__":

@@ -25,12 +25,8 @@ problems, each timed --repeat times (the median of those). JSON: outputs/bench/l
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
 import time
-from pathlib import Path
 
 import _harness
 
@@ -43,8 +39,7 @@ from segs.config import compose, instantiate, make_sequence
 from segs.slam.estimation import optimize
 from segs.slam.estimation.optimize import NO_FACTORS, BundleAdjuster
 
-ROOT = Path(__file__).resolve().parents[1]
-SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+SEVEN_SCENES = _harness.SEVEN_SCENES
 
 
 def record_problems(sensor: str, frames: int) -> tuple[list, BundleAdjuster, dict]:
@@ -102,17 +97,6 @@ def cost_at(graph, poses, new_poses, new_points) -> float:
     return graph.error(values)
 
 
-def timed(fn, repeat: int, setup=None) -> float:
-    ts = []
-    for _ in range(repeat):
-        if setup is not None:
-            setup()
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return statistics.median(ts)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sensor", default="rgbd", choices=("rgbd", "mono"))
@@ -122,7 +106,7 @@ def main() -> None:
     args = ap.parse_args()
     if not (SEVEN_SCENES / "seq").is_dir():
         raise SystemExit(f"bench/local_ba.py: the 7-Scenes frames are not at {SEVEN_SCENES}")
-    load0 = os.getloadavg()
+    record = _harness.record()
     problems, ba, info = record_problems(args.sensor, args.frames)
     problems = problems[-args.problems:]
     rows: dict[str, list[float]] = {}
@@ -157,23 +141,25 @@ def main() -> None:
         add("observations", len(obs.kf))
         add("points", len(points.pid))
         add("keyframes (optimised + fixed)", len(poses))
-        add("build factors + values (ms)", 1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat,
-                                                         lambda: setattr(ba, "_factor_cache", NO_FACTORS)))
+        add("build factors + values (ms)", 1e3 * _harness.median_seconds(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat,
+                                                                         setup=lambda: setattr(ba, "_factor_cache", NO_FACTORS)))
         add("build factors + values after the previous problem's (ms)",
-            1e3 * timed(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat, after_previous))
+            1e3 * _harness.median_seconds(lambda: graph_of(ba, poses, fixed, points, obs), args.repeat, setup=after_previous))
         graph, values = graph_of(ba, poses, fixed, points, obs)
         order = BundleAdjuster._order(poses, points.pid)
-        add("one linearisation (ms)", 1e3 * timed(lambda: graph.linearize(values), args.repeat))
-        add("one error evaluation (ms)", 1e3 * timed(lambda: graph.error(values), args.repeat))
+        add("one linearisation (ms)", 1e3 * _harness.median_seconds(lambda: graph.linearize(values), args.repeat))
+        add("one error evaluation (ms)", 1e3 * _harness.median_seconds(lambda: graph.error(values), args.repeat))
         lin = graph.linearize(values)
-        add("one elimination, COLAMD multifrontal (ms)", 1e3 * timed(lambda: lin.eliminateMultifrontal(), args.repeat))
-        add("one elimination, points first, sequential (ms)", 1e3 * timed(lambda: lin.eliminateSequential(order), args.repeat))
+        add("one elimination, COLAMD multifrontal (ms)", 1e3 * _harness.median_seconds(lin.eliminateMultifrontal, args.repeat))
+        add("one elimination, points first, sequential (ms)",
+            1e3 * _harness.median_seconds(lambda: lin.eliminateSequential(order), args.repeat))
         ref_error = ref_cost = None
         for name, v in variants:
             if len(v) == 3:
                 its, gain = iterations if v[0] is None else v[:2]
                 optimize.LAMBDA_INITIAL = v[2]
-                ms = 1e3 * timed(lambda: ba.run_two_pass(poses, fixed, points, obs, its, gain), args.repeat, after_previous)
+                ms = 1e3 * _harness.median_seconds(lambda: ba.run_two_pass(poses, fixed, points, obs, its, gain), args.repeat,
+                                                   setup=after_previous)
                 new_poses, new_points, _ = ba.run_two_pass(poses, fixed, points, obs, its, gain)
                 optimize.LAMBDA_INITIAL = lam
                 label = f"{name} {its} {gain:g}, initial lambda {v[2]:g}"
@@ -200,17 +186,15 @@ def main() -> None:
     table = {k: statistics.median(v) for k, v in rows.items()}
     means = {k: statistics.fmean(v) for k, v in rows.items()}
     print(f"local BA on {len(problems)} problems of 7-Scenes {args.sensor} frames 0-{args.frames} "
-          f"(load {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}); median, mean over problems:")
+          f"(load {record['machine']['load_avg'][0]:.2f} -> {_harness.load_average()[0]:.2f}); median, mean over problems:")
     for k, v in table.items():
         print(f"  {k:90s} {v:12.5f} {means[k]:12.5f}")
     for k, n in failed.items():
         print(f"  {k}: indeterminate system (gtsam) on {n} of {len(problems)} problems, left out of its rows")
     print(f"  {'local BA in the tracking run (fe.mapper.ba_times, median, ms)':72s} {info['local_ba_ms_in_run']:12.1f}")
-    out = ROOT / "outputs" / "bench"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "local_ba.json").write_text(json.dumps({
-        "args": vars(args), "machine": platform.platform(), "cpus": os.cpu_count(), "load": [load0, os.getloadavg()],
-        "info": info, "medians": table, "means": means, "indeterminate": failed}, indent=2))  # fmt: skip
+    record["machine"]["load_avg_end"] = _harness.load_average()
+    _harness.write_json(_harness.OUTPUTS / "local_ba.json", {"args": vars(args), **record, "info": info, "medians": table, "means": means,
+                                                             "indeterminate": failed})  # fmt: skip
 
 
 if __name__ == "__main__":

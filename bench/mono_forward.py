@@ -30,14 +30,8 @@ deterministic; the timings are medians over --runs runs (the machine load is rec
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
-import statistics
-import sys
 import time
-from pathlib import Path
 
 import _harness
 
@@ -54,8 +48,7 @@ from segs.slam.features.extractor import OrbExtractor, to_gray
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 
-ROOT = Path(__file__).resolve().parents[1]
-SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+SCENES = _harness.SEVEN_SCENES
 
 
 def path_length(gt_c2w: np.ndarray) -> float:
@@ -150,7 +143,7 @@ def bench(name: str, seq, runs: int) -> dict:
     for method, fn in (("segs", run_segs), ("two_view", run_two_view)):
         rows = [fn(seq, frames) for _ in range(runs)]
         acc = rows[0][0]
-        timing = {k: statistics.median([r[1][k] for r in rows]) for k in rows[0][1] if rows[0][1][k] is not None}
+        timing = {k: v for k, v in _harness.medians([r[1] for r in rows]).items() if v is not None}
         out[method] = {**acc, **timing}
         a = out[method]
         print(f"{name} [{method}]: ATE {_fmt(a['ate_m'], 100, 'cm')} ({_fmt(a['ate_pct_path'], 1, '%')} of "
@@ -176,14 +169,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, nargs=2, default=[640, 480])
     ap.add_argument("--scenes-frames", type=int, default=600)
     ap.add_argument("--skip-7scenes", action="store_true")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "mono_forward.json"))
+    ap.add_argument("--out", default=str(_harness.OUTPUTS / "mono_forward.json"))
     a = ap.parse_args()
-    results = {
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
-                    "load_avg_1m": os.getloadavg()[0]},
-        "runs": a.runs, "sequences": {},
-    }
+    results = {**_harness.record(), "runs": a.runs, "sequences": {}}
     w, h = a.size
     for speed in a.speeds:
         seq = SyntheticSequence(sensor="mono", n_frames=a.frames, width=w, height=h, trajectory="forward",
@@ -200,11 +188,10 @@ def main() -> None:
         seq = SevenScenesSequence(root=SCENES, sensor="mono", frames=[0, a.scenes_frames])
         name = f"7scenes_redkitchen_{len(seq)}"
         results["sequences"][name] = bench(name, seq, a.runs)
-    results["machine"]["load_avg_1m_end"] = os.getloadavg()[0]
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(results, indent=2))
-    print(f"-> {a.out} (load average {results['machine']['load_avg_1m']:.1f} -> "
-          f"{results['machine']['load_avg_1m_end']:.1f} on {os.cpu_count()} cores)")
+    results["machine"]["load_avg_end"] = _harness.load_average()
+    _harness.write_json(a.out, results)
+    print(f"-> {a.out} (load average {results['machine']['load_avg'][0]:.1f} -> "
+          f"{results['machine']['load_avg_end'][0]:.1f} on {os.cpu_count()} cores)")
 
 
 class _Frames:

@@ -17,7 +17,6 @@ match among the k best; chance@1: the recall@1 of a random pick. JSON with --jso
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -31,8 +30,7 @@ from segs.data.tum import TumSequence
 from segs.slam.features.extractor import OrbExtractor, to_gray
 from segs.slam.map.vocabulary import KeyFrameDatabase, Vocabulary
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+DATA = _harness.SEVEN_SCENES
 # the ground truth reprojects depth images: the 7-Scenes depth camera's intrinsics (the colour
 # camera's differ, and ORB retrieval needs none)
 DEPTH_K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
@@ -129,7 +127,7 @@ def main() -> None:
         print(f"{r['vocabulary']}: {r['words']} words, {r['queries']} queries, recall@1 {r['recall@1']:.3f}, "
               f"recall@5 {r['recall@5']:.3f} (chance@1 {r['chance@1']:.3f})")
     if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=1))
+        _harness.write_json(a.json, rows)
 
 
 if __name__ == "__main__":

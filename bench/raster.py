@@ -14,16 +14,12 @@ Figures are also written as JSON (default outputs/bench/raster.json).
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import _harness
 
@@ -34,24 +30,6 @@ import torch
 from segs.raster import _cpu_backend, _torch_backend, available_backends, rasterize
 from segs.raster._projection import project
 from segs.raster.scenes import random_scene
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def machine() -> dict:
-    model = platform.processor()
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        model = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if "Model name" in ln)
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        pass
-    return {
-        "cpu_model": model, "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-        "torch": torch.__version__, "python": platform.python_version(),
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "loadavg_start": os.getloadavg(),
-        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-    }
 
 
 def scene_stats(scene, backend: str) -> dict:
@@ -153,11 +131,12 @@ def main() -> None:
     ap.add_argument("--sizes", default="320x240:20000,640x480:100000")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
     ap.add_argument("--build-times", action="store_true", help="also time a cold build")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "raster.json"))
+    ap.add_argument("--out", default=str(_harness.OUTPUTS / "raster.json"))
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    info = {"machine": machine(), "results": []}
+    info = {**_harness.record(), "torch": torch.__version__,
+            "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None, "results": []}
     backends = args.backends.split(",")
     for spec in args.sizes.split(","):
         size, n = spec.split(":")
@@ -177,10 +156,10 @@ def main() -> None:
             info["results"].append(row)
     if args.build_times:
         info["build"] = build_times()
-    info["machine"]["loadavg_end"] = os.getloadavg()
+    info["machine"]["load_avg_end"] = _harness.load_average()
     m = info["machine"]
-    print(f"{m['cpu_model']}, {m['cpu_count']} CPUs, torch {m['torch']} with {m['torch_threads']} "
-          f"threads, {m['date']}, load {m['loadavg_start'][0]:.1f} -> {m['loadavg_end'][0]:.1f}")
+    print(f"{m['cpu']}, {m['cores']} CPUs, torch {info['torch']} with {m['torch_threads']} "
+          f"threads, {info['time']}, load {m['load_avg'][0]:.1f} -> {m['load_avg_end'][0]:.1f}")
     print_table(info["results"])
     for spec, st in info["scenes"].items():
         print(f"scene {spec}: {st['visible']} visible, {st['nominal_pairs'] / 1e6:.1f} M nominal "
@@ -188,9 +167,7 @@ def main() -> None:
     if "build" in info:
         print(f"cold build {info['build']['cold_build_s']:.1f} s, "
               f"cached load {info['build']['cached_load_s']:.2f} s")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(info, indent=2))
-    print(f"wrote {args.out}")
+    print(f"wrote {_harness.write_json(args.out, info)}")
 
 
 if __name__ == "__main__":

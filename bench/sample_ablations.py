@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -27,7 +26,7 @@ _harness.apply_process_settings()  # before torch loads
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = _harness.ROOT
 VARIANTS = {
     "full SEGS": None,
     "w/o FPR": "no_fpr",
@@ -52,7 +51,8 @@ def run_one(experiment: str, ablation: str | None, seed: int, steps: int, out: P
     # an interrupted run resumes from its own checkpoint (segs.train refuses its folder otherwise)
     ckpt = next((p for p in (out / "checkpoints" / "final.ckpt", out / "checkpoints" / "last.ckpt") if p.is_file()), None)
     frontend = ["slam=known_poses"] if experiment == "sample" else []  # the sample's frames are 0.15 m apart
-    cmd = [sys.executable, "-m", "segs.train", f"+experiment={experiment}", *frontend, f"seed={seed}",
+    data = [f"data.root={_harness.SEVEN_SCENES}"] if experiment.startswith("seven_scenes") else []
+    cmd = [sys.executable, "-m", "segs.train", f"+experiment={experiment}", *frontend, *data, f"seed={seed}",
            f"trainer.max_steps={steps}", f"hydra.run.dir={out}", "callbacks.slam_bridge.progress=false",
            "eval.progress=false", *extra] + ([f"+ablation={ablation}"] if ablation else []) + ([f"ckpt_path={ckpt}"] if ckpt else [])  # fmt: skip
     print(" ".join(cmd[1:]), flush=True)
@@ -68,7 +68,7 @@ def _cell(values: list[float], fmt: str) -> str:
 
 
 def table(results: dict[str, list[dict]], experiment: str, steps: int, seeds: list[int], extra: list[str]) -> str:
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    machine = _harness.record()["machine"]
     runs = [r for rs in results.values() for r in rs]
     views = "/".join(map(str, sorted({r["test_views"] for r in runs})))
     cmd = (f"python bench/sample_ablations.py{'' if experiment == 'sample' else ' --experiment ' + experiment} --steps {steps} "
@@ -76,7 +76,7 @@ def table(results: dict[str, list[dict]], experiment: str, steps: int, seeds: li
     how = ("known (ground-truth) poses, every 8th frame held out plus the frames that did not become keyframes" if experiment == "sample"
            else "the ORB frontend in the loop (slam=orb), keyframes train and every other tracked frame is a test view rendered at its estimated pose")  # fmt: skip
     lines = [
-        f"Measured {datetime.date.today()} on {cpu} (2 cores, no GPU), `{cmd}`: {how}; {steps} iterations, "
+        f"Measured {datetime.date.today()} on {machine['cpu']} ({machine['cores']} cores, no GPU), `{cmd}`: {how}; {steps} iterations, "
         f"{len(seeds)} seed(s) each (mean ± std over seeds), {views} test views. Paper column: TUM RGB-D PSNR of Table 5 "
         "(fr1/desk, fr2/xyz, fr3/office, 30k iterations, GPU).",
         "",
@@ -121,7 +121,7 @@ def main() -> None:
     p.add_argument("--extra", nargs="*", default=[], help="more overrides for every run")
     p.add_argument("--out", type=Path, default=None, help="default: outputs/bench/<experiment>_ablations")
     args = p.parse_args()
-    out = args.out or ROOT / "outputs" / "bench" / ("sample_ablations" if args.experiment == "sample" else f"{args.experiment}_ablations")
+    out = args.out or _harness.OUTPUTS / ("sample_ablations" if args.experiment == "sample" else f"{args.experiment}_ablations")
     results = {name: [] for name in VARIANTS}
     for s in args.seeds:  # seed by seed: an interrupted sweep leaves whole seeds
         for name, ablation in VARIANTS.items():

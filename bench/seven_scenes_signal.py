@@ -15,7 +15,6 @@ JSON: outputs/bench/seven_scenes_signal.json.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import _harness
@@ -29,7 +28,7 @@ import torch.nn.functional as F
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.modules.fpr import highpass_mask, spectrum
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = _harness.ROOT
 
 
 def same_point_ratio(a, b) -> float | None:
@@ -79,8 +78,8 @@ def jpeg_in_fpr_band(seq, scales: int = 3, hp_ratio: float = 0.4) -> list[float]
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--root", type=Path, default=ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599")
-    p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "seven_scenes_signal.json")
+    p.add_argument("--root", type=Path, default=_harness.SEVEN_SCENES)
+    p.add_argument("--out", type=Path, default=_harness.OUTPUTS / "seven_scenes_signal.json")
     args = p.parse_args()
     result = {"exposure": exposure(SevenScenesSequence(args.root, sensor="rgbd")), "jpeg_in_fpr_band": {}}
     for gap, r in result["exposure"].items():
@@ -91,8 +90,7 @@ def main() -> None:
         result["jpeg_in_fpr_band"][f"{seq.camera.width}x{seq.camera.height}"] = band
         print(f"{seq.camera.width}x{seq.camera.height}: JPEG error energy in FPR's high-pass band, per scale: "
               + ", ".join(f"{100 * x:.1f} %" for x in band) + " of the lossless image's")  # fmt: skip
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    _harness.write_json(args.out, result)
 
 
 if __name__ == "__main__":

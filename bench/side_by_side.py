@@ -19,11 +19,8 @@ outputs/bench/side_by_side.json.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
-import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -32,8 +29,8 @@ import _harness
 
 _harness.apply_process_settings()  # before torch loads
 
-ROOT = Path(__file__).resolve().parents[1]
-SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+ROOT = _harness.ROOT
+SEVEN_SCENES = _harness.SEVEN_SCENES
 # sequence -> (experiment, overrides); "synthetic" is small and needs no data (used by the tests)
 SEQUENCES = {
     "7scenes_rgbd": ("seven_scenes_rgbd", [f"data.root={SEVEN_SCENES}"]),
@@ -77,14 +74,6 @@ def worker(sequence: str, overrides: list[str]) -> None:
     print(json.dumps(out), flush=True)
 
 
-def commit_of(src: Path) -> str:
-    """The git commit of the tree holding src (and '+changes' when it has local changes), or '?'."""
-    def git(*args):
-        return subprocess.run(["git", "-C", str(src), *args], capture_output=True, text=True).stdout.strip()
-    rev = git("rev-parse", "--short", "HEAD")
-    return (rev + ("+changes" if git("status", "--porcelain", "--untracked-files=no") else "")) if rev else "?"
-
-
 def start(src: Path, sequence: str, overrides: list[str]) -> subprocess.Popen:
     env = {**os.environ, **ONE_THREAD, "PYTHONPATH": str(src)}
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--sequence", sequence, "--override", *overrides]
@@ -117,7 +106,7 @@ def run_pair(srcs: dict[str, Path], sequence: str, overrides: list[str]) -> dict
 def summary(pairs: list[dict[str, dict]]) -> dict:
     """Medians over pairs per side, and this / reference of the medians."""
     keys = ["total_s", "fps", *[f"{k}_s" for k in TIMERS]]
-    med = {side: {k: statistics.median(p[side][k] for p in pairs) for k in keys} for side in ("this", "reference")}
+    med = {side: _harness.medians([{k: float(p[side][k]) for k in keys} for p in pairs]) for side in ("this", "reference")}
     ratio = {k: med["this"][k] / med["reference"][k] if med["reference"][k] else float("nan") for k in keys}
     return {"median": med, "ratio_this_over_reference": ratio,
             "total_ratio_per_pair": [p["this"]["total_s"] / p["reference"]["total_s"] for p in pairs]}
@@ -129,7 +118,7 @@ def main() -> None:
     ap.add_argument("--sequence", default="7scenes_rgbd", choices=sorted(SEQUENCES))
     ap.add_argument("--pairs", type=int, default=3)
     ap.add_argument("--override", nargs="*", default=[], help="extra config overrides (both sides)")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "side_by_side.json"))
+    ap.add_argument("--out", default=str(_harness.OUTPUTS / "side_by_side.json"))
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.worker:
@@ -152,17 +141,15 @@ def main() -> None:
         print(f"pair {i + 1}/{a.pairs}: this {t['total_s']:.1f} s ({t['keyframes']} kfs, {t['ate_cm']:.2f} cm), "
               f"reference {r['total_s']:.1f} s ({r['keyframes']} kfs, {r['ate_cm']:.2f} cm): "
               f"{t['total_s'] / r['total_s']:.3f}x", flush=True)
-    res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "sequence": a.sequence,
-           "overrides": a.override, "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
-           "this": {"src": str(srcs["this"]), "commit": commit_of(srcs["this"])},
-           "reference": {"src": str(ref), "commit": commit_of(ref)}, "pairs": pairs, **summary(pairs)}
+    # the checkout holding each src folder: its short commit, "+changes" with local changes, "?" outside git
+    res = {**_harness.record(), "sequence": a.sequence, "overrides": a.override,
+           "this": {"src": str(srcs["this"]), "commit": _harness.short_commit(srcs["this"].parent)},
+           "reference": {"src": str(ref), "commit": _harness.short_commit(ref.parent)}, "pairs": pairs, **summary(pairs)}
     ratio = res["ratio_this_over_reference"]
     print(f"{a.sequence}, {a.pairs} pairs side by side, this ({res['this']['commit']}) / reference "
           f"({res['reference']['commit']}), medians: whole run {ratio['total_s']:.3f}x, "
           + ", ".join(f"{k} {ratio[f'{k}_s']:.3f}x" for k in TIMERS))
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=2))
-    print(f"-> {a.out}")
+    print(f"-> {_harness.write_json(a.out, res)}")
 
 
 if __name__ == "__main__":

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -26,8 +24,8 @@ import _harness
 
 _harness.apply_process_settings()  # before torch loads
 
-ROOT = Path(__file__).resolve().parents[1]
-SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+ROOT = _harness.ROOT
+SEVEN_SCENES = _harness.SEVEN_SCENES
 KEYS = ("wall_time_s", "mapping_time_s", "tracking_fps", "frames", "frames_tracked", "frames_dropped_live",
         "keyframes", "ate_rmse_m", "psnr", "ssim", "iterations")
 
@@ -39,7 +37,7 @@ def run_mode(mode: str, args, out: Path) -> dict:
            "callbacks.periodic_checkpoint.every_n_steps=0", "callbacks.slam_bridge.progress=false",
            f"hydra.run.dir={out / mode}"] + args.extra  # fmt: skip
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"segs.train slam_mode={mode} failed ({proc.returncode}):\n{proc.stderr[-2000:]}")
@@ -58,19 +56,17 @@ def main() -> None:
     if not (SEVEN_SCENES / "seq").is_dir():
         raise SystemExit(f"bench/slam_modes.py: the 7-Scenes frames are not at {SEVEN_SCENES}")
     # a folder per invocation: segs.train refuses a run folder that already holds a finished run
-    out = ROOT / "outputs" / "bench" / "slam_modes" / time.strftime("%Y-%m-%d_%H-%M-%S")
+    out = _harness.OUTPUTS / "slam_modes" / time.strftime("%Y-%m-%d_%H-%M-%S")
     rows = []
     for mode in args.modes:
-        load = os.getloadavg()[0]
-        rows.append({**run_mode(mode, args, out), "load_before": load, "load_after": os.getloadavg()[0]})
+        load = _harness.load_average()[0]
+        rows.append({**run_mode(mode, args, out), "load_before": load, "load_after": _harness.load_average()[0]})
         r = rows[-1]
         print(f"{mode:12s} run {r['process_wall_s']:7.1f} s (metrics wall {r['wall_time_s']:.1f}, mapping {r['mapping_time_s']:.1f}) | "
               f"tracking {r['tracking_fps'] or 0:.1f} FPS, {r['frames_tracked']}/{r['frames']} tracked, "
               f"{r['frames_dropped_live']} dropped, {r['keyframes']} kfs | ATE {100 * (r['ate_rmse_m'] or float('nan')):.2f} cm | "
               f"PSNR {r['psnr']:.2f} dB | load {r['load_before']:.1f} -> {r['load_after']:.1f}", flush=True)  # fmt: skip
-    (ROOT / "outputs" / "bench").mkdir(parents=True, exist_ok=True)
-    (ROOT / "outputs" / "bench" / "slam_modes.json").write_text(json.dumps(
-        {"args": vars(args), "machine": platform.platform(), "cpus": os.cpu_count(), "runs": rows}, indent=2))
+    _harness.write_json(_harness.OUTPUTS / "slam_modes.json", {"args": vars(args), **_harness.record(), "runs": rows})
 
 
 if __name__ == "__main__":

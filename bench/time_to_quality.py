@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 import tempfile
@@ -47,10 +46,9 @@ import _harness
 _harness.apply_process_settings()  # before torch loads
 
 import lightning as L
-import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-SEVEN_SCENES = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+ROOT = _harness.ROOT
+SEVEN_SCENES = _harness.SEVEN_SCENES
 DATASETS = {
     "7scenes": ["+experiment=seven_scenes_rgbd", "slam=known_poses", f"data.root={SEVEN_SCENES}", "data.frames=[100,250]",
                 "data.downscale=2", "eval.holdout_every=8"],
@@ -60,10 +58,6 @@ DATASETS = {
 # 1/2 for the next); its warm-up runs at 1/4 size, so give it --max-steps or --pace-from
 METHODS = {"segs": [], "plain_3dgs": ["+ablation=plain_3dgs"],
            "segs_c2f": ["mapping.num_downscales=2", "mapping.downscale_phase=0.25"]}  # fmt: skip
-# no loggers, bars, image logging, checkpoints or signal handlers: the clock times mapping only
-QUIET = ["logger=none", "~callbacks.progress_bar", "~callbacks.image_logger", "~callbacks.periodic_checkpoint", "~callbacks.interrupt",
-         "callbacks.slam_bridge.progress=false", "trainer.enable_progress_bar=false", "eval.progress=false"]  # fmt: skip
-FEED_ALL = "callbacks.slam_bridge.min_initial_keyframes=1000000000"  # every frame is fed before the first step
 MARKS = (15, 30, 60, 120, 300, 600, 1200, 1800, 3600)
 TABLE_MINUTES = (1, 2, 5, 10)
 PROVISIONAL_STEPS_PER_S = 10.0  # max_steps of the warm-up run only (its schedule is not used)
@@ -146,33 +140,12 @@ class RateProbe(L.Callback):
         return (half[-1][1] - half[0][1]) / (half[-1][0] - half[0][0])
 
 
-def _build(overrides: list[str], max_steps: int, out: Path, extra_callbacks: list):
-    """segs.train.build of the composed run; returns (cfg, sequence, module, bridge, trainer)."""
-    from segs.config import compose
-    from segs.train import build
-
-    cfg = compose(overrides + QUIET + [FEED_ALL, f"trainer.max_steps={max_steps}"], output_dir=str(out))
-    L.seed_everything(cfg.seed, workers=True, verbose=False)
-    sequence, _frontend, module, bridge, trainer = build(cfg, time.perf_counter())
-    trainer.callbacks.extend(extra_callbacks)
-    return cfg, sequence, module, bridge, trainer
-
-
-def _fit(cfg, module, trainer) -> None:
-    from torch.utils.data import DataLoader
-
-    from segs.train import StepDataset
-
-    loader = DataLoader(StepDataset(cfg.trainer.max_steps), batch_size=None, shuffle=False,
-                        generator=torch.Generator().manual_seed(cfg.seed))  # fmt: skip
-    trainer.fit(module, loader, weights_only=False)
-
-
 def warmup(overrides: list[str], seconds: float, budget: float, out: Path) -> RateProbe:
     """A `seconds`-long warm-up of the same run (discarded): its steps/s and feeding seconds."""
     probe = RateProbe(seconds)
-    cfg, _seq, module, _bridge, trainer = _build(overrides, int(PROVISIONAL_STEPS_PER_S * budget) + 1, out, [probe])
-    _fit(cfg, module, trainer)
+    # no loggers, bars, image logging, checkpoints or signal handlers (_harness.QUIET): the clock times mapping only
+    cfg, _seq, module, _bridge, trainer = _harness.build_training(overrides, int(PROVISIONAL_STEPS_PER_S * budget) + 1, out, [probe])
+    _harness.fit(cfg, module, trainer)
     return probe
 
 
@@ -208,23 +181,18 @@ def run_curve(overrides: list[str], budget: float, marks: list[float], out: Path
         rate = probe.rate()
         max_steps = max(int(rate * max(budget - (probe.feed_s or 0.0), 1.0)), 1)
     clock = TrainingClock(marks, budget, lambda m: {})
-    cfg, sequence, module, bridge, trainer = _build(overrides, max_steps, out / "run", [clock])
+    cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, max_steps, out / "run", [clock])
     score = view_scorer(sequence, bridge, out)
     clock.score = wrap_score(score) if wrap_score else score
     t0 = time.perf_counter()
     clock.start()
-    _fit(cfg, module, trainer)
+    _harness.fit(cfg, module, trainer)
     clock.stop()
     fit_wall = time.perf_counter() - t0
     eval_s = sum(p["eval_s"] for p in clock.points)
     return {"max_steps": max_steps, "warmup_steps_per_s": rate, "feed_s": clock.first_step_s,
             "fit_wall_s": fit_wall, "train_s": clock.seconds, "eval_s": eval_s, "steps": int(trainer.global_step),
             "schedule_done": trainer.global_step / max_steps, "points": clock.points}  # fmt: skip
-
-
-def _machine() -> dict:
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
-    return {"cpu": cpu, "threads": torch.get_num_threads(), "uptime": _uptime()}
 
 
 def _uptime() -> str:
@@ -298,8 +266,7 @@ def chart(curves: list[dict], path: Path) -> None:
 
 def write_outputs(record: dict, json_path: Path, png_path: Path) -> None:
     """The JSON (record + flat points) and the chart."""
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps({**record, "points": flatten(record["curves"])}, indent=2))
+    _harness.write_json(json_path, {**record, "points": flatten(record["curves"])})
     chart(record["curves"], png_path)
 
 
@@ -318,7 +285,7 @@ def _one(args) -> None:
     out = Path(tempfile.mkdtemp(prefix=f"ttq_{dataset}_{method}_", dir=args.work))
     res = run_curve(DATASETS[dataset] + METHODS[method] + [f"seed={args.seed}"] + args.extra, budget, args.marks, out,
                     args.max_steps or paced_steps(args.pace_from, dataset, method, budget), args.warmup_s)  # fmt: skip
-    Path(args.part).write_text(json.dumps({"dataset": dataset, "method": method, "budget_s": budget, **res}))
+    _harness.write_json(args.part, {"dataset": dataset, "method": method, "budget_s": budget, **res})
 
 
 def main() -> None:
@@ -335,8 +302,8 @@ def main() -> None:
     p.add_argument("--report", type=Path, default=None, help="only print the table and redraw the chart of this output JSON")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--extra", nargs="*", default=[], help="more overrides for every run")
-    p.add_argument("--work", default=str(ROOT / "outputs" / "bench" / "time_to_quality"), help="per-curve run folders")
-    p.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "time_to_quality.json"))
+    p.add_argument("--work", default=str(_harness.OUTPUTS / "time_to_quality"), help="per-curve run folders")
+    p.add_argument("--out", default=str(_harness.OUTPUTS / "time_to_quality.json"))
     p.add_argument("--chart", default=str(ROOT / "docs" / "performance" / "time_to_quality.png"))
     p.add_argument("--curve", nargs=2, metavar=("DATASET", "METHOD"), help=argparse.SUPPRESS)
     p.add_argument("--part", help=argparse.SUPPRESS)
@@ -352,7 +319,8 @@ def main() -> None:
     if "7scenes" in args.datasets and not (SEVEN_SCENES / "seq").is_dir():
         print(f"time_to_quality: skipping 7scenes: the shared frames are not at {SEVEN_SCENES}", file=sys.stderr)
         args.datasets.remove("7scenes")
-    record = {"machine": _machine(), "command": " ".join(["python bench/time_to_quality.py"] + sys.argv[1:]), "curves": []}
+    record = {**_harness.record(), "command": " ".join(["python bench/time_to_quality.py"] + sys.argv[1:]), "curves": []}
+    record["machine"]["uptime"] = _uptime()
     for dataset in args.datasets:
         for method in args.methods:
             part = Path(args.work) / f"{dataset}_{method}.json"
@@ -362,7 +330,7 @@ def main() -> None:
             record["curves"].append(json.loads(part.read_text()))
             record["uptime_after"] = _uptime()
             write_outputs(record, Path(args.out), Path(args.chart))  # after every curve: an interrupted run keeps its curves
-    print(f"{record['machine']['cpu']}, {record['machine']['threads']} threads; before: {record['machine']['uptime']}; "
+    print(f"{record['machine']['cpu']}, {record['machine']['torch_threads']} threads; before: {record['machine']['uptime']}; "
           f"after: {record.get('uptime_after')}")
     print(table(record["curves"]))
 

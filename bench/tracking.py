@@ -21,12 +21,8 @@ its keyframes and ATE). JSON: outputs/bench/tracking.json.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -41,7 +37,7 @@ from segs.data.tum import TumSequence
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = _harness.ROOT
 
 
 def one_run(seq, sensor: str, make_frontend, threaded: bool) -> dict:
@@ -87,8 +83,7 @@ def one_run(seq, sensor: str, make_frontend, threaded: bool) -> dict:
 def bench(name, seq, sensor, make_frontend, runs, threaded_too=True) -> dict:
     """Median over `runs` single-thread runs (and threaded runs: end-to-end FPS only)."""
     rows = [one_run(seq, sensor, make_frontend, False) for _ in range(runs)]
-    out = {k: statistics.median([r[k] for r in rows]) if isinstance(rows[0][k], float) else rows[0][k]
-           for k in rows[0]}
+    out = _harness.medians(rows)
     out["ate_cm_runs"] = [r["ate_cm"] for r in rows]
     out["tracking_fps"] = 1e3 / out["tracking_ms"]
     out["tracking_fps_cpu"] = 1e3 / out["tracking_cpu_ms"]
@@ -131,16 +126,11 @@ def main() -> None:
     ap.add_argument("--features", type=int, default=1500)
     ap.add_argument("--sequences", nargs="+", default=["synthetic", "tum", "7scenes_rgbd", "7scenes_mono"],
                     choices=["synthetic", "tum", "7scenes_rgbd", "7scenes_mono"])
-    ap.add_argument("--seven-scenes", default=str(ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"))
+    ap.add_argument("--seven-scenes", default=str(_harness.SEVEN_SCENES))
     ap.add_argument("--override", nargs="*", default=[], help="extra config overrides for the 7-Scenes runs")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "tracking.json"))
+    ap.add_argument("--out", default=str(_harness.OUTPUTS / "tracking.json"))
     a = ap.parse_args()
-    results = {
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
-                    "load_avg_1m": os.getloadavg()[0]},
-        "features": a.features,
-    }
+    results = {**_harness.record(), "features": a.features}
     if "synthetic" in a.sequences:
         syn = SyntheticSequence(sensor="rgbd", n_frames=a.frames, width=640, height=480, trajectory="loop", seed=0)
         results["synthetic_rgbd_640"] = bench("synthetic RGB-D 640x480", syn, "rgbd",
@@ -159,11 +149,10 @@ def main() -> None:
         seq, make = experiment(f"seven_scenes_{sensor}", [f"data.root={a.seven_scenes}"] + a.override)
         results[f"7scenes_{sensor}"] = bench(f"7-Scenes redkitchen {len(seq)} frames, {sensor}, 640x480, defaults", seq,
                                              sensor, make, a.runs)
-    results["machine"]["load_avg_1m_end"] = os.getloadavg()[0]
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(results, indent=2))
-    print(f"-> {a.out} (load average {results['machine']['load_avg_1m']:.1f} -> "
-          f"{results['machine']['load_avg_1m_end']:.1f} on {os.cpu_count()} cores)")
+    results["machine"]["load_avg_end"] = _harness.load_average()
+    _harness.write_json(a.out, results)
+    print(f"-> {a.out} (load average {results['machine']['load_avg'][0]:.1f} -> "
+          f"{results['machine']['load_avg_end'][0]:.1f} on {os.cpu_count()} cores)")
 
 
 if __name__ == "__main__":

@@ -1,10 +1,14 @@
 """Mapping iteration time on the bundled real TUM sample (or another experiment), per model, with a breakdown.
 
-Builds the map of every sample keyframe from known poses (320x240), warms each model up with
-`--warmup` training iterations of a `--schedule`-step run (densification on, so the Gaussian
-count is what that point of a real run has), then
-times `--iters` iterations: decode, rasterize (forward), loss, backward (raster + decoders +
-loss), optimizer step. Prints one table (medians) and writes outputs/bench/train_step.json.
+Builds the run as `python -m segs.train` builds it (segs.train.build: known poses, 320x240 on the
+sample, no loggers or checkpoints) and feeds every frame before the first step, so the map holds
+every keyframe; a Lightning trainer then runs the module's own `training_step`: `--warmup`
+untimed steps of a `--schedule`-step run (densification on, so the Gaussian count is what that
+point of a real run has), then `--iters` timed ones. Per step: decode (model.decode), rasterize
+(forward), loss (model.loss), backward (manual_backward), step+stats (the rest of training_step:
+view sampling, densification statistics, learning rates, Adam step, densification) and total
+(the step's own clock, GaussianMapperModule.iteration_ms: what segs.train reports as
+train/iteration_ms). Prints one table (medians) and writes outputs/bench/train_step.json.
 
     python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
     python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
@@ -13,8 +17,7 @@ loss), optimizer step. Prints one table (medians) and writes outputs/bench/train
 from __future__ import annotations
 
 import argparse
-import json
-import platform
+import tempfile
 import time
 from pathlib import Path
 
@@ -22,81 +25,80 @@ import _harness
 
 _harness.apply_process_settings()  # before torch loads
 
-import numpy as np
+import lightning as L
 import torch
 
-from segs.callbacks.bridge import SlamBridge
-from segs.config import compose, instantiate, make_sequence
-from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
-from segs.modules.optim import make_adam, set_learning_rates
-from segs.modules.resolution import coarse_camera, coarse_image
-from segs.modules.scene_model import View
-from segs.raster import rasterize
+from segs.modules.resolution import coarse_camera
 
-ROOT = Path(__file__).resolve().parents[1]
+PHASES = ("decode", "raster_fwd", "loss", "backward")
 
 
-def build(model: str, steps: int, backend: str, device: str = "cpu", experiment: str = "sample", extra=()):
-    cfg = compose([f"+experiment={experiment}", "slam=known_poses", f"trainer.max_steps={steps}", f"raster.backend={backend}"]
-                  + (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []) + list(extra), output_dir="/tmp/segs_bench")  # fmt: skip
-    seq = make_sequence(cfg.data)
-    frontend = instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor)
-    module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
-    module.to(device)
-    bridge = SlamBridge(seq, frontend, progress=False)
-    for _ in range(len(seq)):
-        bridge._feed_one()
-        bridge._push(frontend.poll(), module)
-    return module
+class StepTimes(L.Callback):
+    """Times the phases of the module's training_step by wrapping what it calls on this module
+    (render = model.decode + the rasterizer, model.decode, model.loss, manual_backward: the step
+    itself runs unchanged), one row per step after `warmup` steps; stops the trainer after `iters`
+    rows. rows: {phase: seconds, "step+stats", "total", "gaussians"}."""
 
+    def __init__(self, module: GaussianMapperModule, warmup: int, iters: int, factor: int = 1):
+        self.warmup, self.iters, self.steps, self.rows = warmup, iters, 0, []
+        self._now: dict[str, float] = {}
+        self._gaussians = 0
+        dev = str(module.device)
+        self._sync = (lambda: torch.cuda.synchronize()) if dev.startswith("cuda") else (lambda: None)
+        module.render = self._timed("render", module.render)
+        module.model.decode = self._timed("decode", module.model.decode)
+        module.model.loss = self._timed("loss", module.model.loss)
+        module.manual_backward = self._timed("backward", module.manual_backward)
+        if factor != 1:  # the timed steps at 1/factor size (coarse-to-fine's schedule otherwise)
+            schedule = module.resolution_factor
+            module.resolution_factor = lambda step: factor if self.steps >= warmup else schedule(step)
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
+    def _timed(self, name: str, fn):
+        def timed(*args, **kwargs):
+            self._sync()
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            self._sync()
+            self._now[name] = self._now.get(name, 0.0) + time.perf_counter() - t0
+            if name == "decode":
+                self._gaussians = len(out)
+            return out
 
+        return timed
 
-def iteration(module: GaussianMapperModule, opt, step: int, timed: bool, factor: int = 1) -> dict:
-    t = {}
-    dev = str(module.device)
-    clock = lambda: (_sync(dev), time.perf_counter())[1]  # noqa: E731
-    kf = module.views.sample()
-    view = View(kf.w2c.to(dev), coarse_camera(kf.camera, factor), kf.kf_id)
-    gt = coarse_image(kf.rgb().to(dev), factor)
-    t0 = clock()
-    dec = module.model.decode(view, step)
-    t1 = clock()
-    out = rasterize(dec.means, dec.quats, dec.scales, dec.opacities, dec.colors, view.w2c, view.K.to(dev), view.camera.width,
-                    view.camera.height, background=torch.zeros(3, device=dev), backend=module.raster.backend)  # fmt: skip
-    t2 = clock()
-    terms = module.model.loss(out, gt, dec, step)
-    t3 = clock()
-    terms["total"].backward()
-    t4 = clock()
-    module.model.after_backward(dec, out, step)
-    set_learning_rates(opt, module.model.lr_schedules(), step)
-    opt.step()
-    opt.zero_grad(set_to_none=True)
-    module.model.maintain(step + 1, opt)
-    t5 = clock()
-    if timed:
-        t = {"decode": t1 - t0, "raster_fwd": t2 - t1, "loss": t3 - t2, "backward": t4 - t3, "step+stats": t5 - t4, "total": t5 - t0,
-             "gaussians": len(dec)}  # fmt: skip
-    return t
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self._now = {}
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.steps += 1
+        if self.steps > self.warmup:
+            total = pl_module.iteration_ms[-1] / 1e3
+            now = {k: self._now.get(k, 0.0) for k in ("render", *PHASES)}
+            now["raster_fwd"] = now.pop("render") - now["decode"]
+            row = {k: now[k] for k in PHASES}
+            self.rows.append({**row, "step+stats": total - sum(row.values()), "total": total, "gaussians": float(self._gaussians)})
+        if len(self.rows) >= self.iters:
+            trainer.should_stop = True
 
 
 def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu",
           experiment: str = "sample", extra=(), factor: int = 1) -> dict:
-    torch.manual_seed(0)
-    module = build(model, schedule, backend, device, experiment, extra)
-    opt = make_adam(module.model.param_groups())
-    for s in range(warmup):
-        iteration(module, opt, s, False)
-    rows = [iteration(module, opt, warmup + i, True, factor) for i in range(iters)]
-    med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    """Medians of the timed steps of one model (module doc), with its anchors and image size."""
+    overrides = [f"+experiment={experiment}", "slam=known_poses", f"raster.backend={backend}",
+                 f"trainer.accelerator={'gpu' if device.startswith('cuda') else 'cpu'}"]
+    overrides += (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []) + list(extra)
+    with tempfile.TemporaryDirectory(prefix=f"train_step_{model}_") as out:
+        cfg, _seq, module, _bridge, trainer = _harness.build_training(overrides, schedule, Path(out), [])
+        times = StepTimes(module, warmup, iters, factor)
+        trainer.callbacks.append(times)
+        _harness.fit(cfg, module, trainer)
+    if len(times.rows) < iters:
+        raise SystemExit(f"bench/train_step.py: {model}: {len(times.rows)} timed steps of {iters} "
+                         f"(the schedule has {schedule}; raise --schedule)")
+    med = _harness.medians(times.rows)
     med["anchors"] = int(module.model.counts()["anchors"])
-    view = module.views.sample()
-    cam = coarse_camera(view.camera, factor)
+    cam = coarse_camera(module.views.sample().camera, factor)
     med["size"] = f"{cam.width}x{cam.height}"
     return med
 
@@ -112,25 +114,22 @@ def main() -> None:
     p.add_argument("--experiment", default="sample", help="+experiment=NAME (with slam=known_poses)")
     p.add_argument("--extra", nargs="*", default=[], help="more config overrides, e.g. data.frames=[100,250]")
     p.add_argument("--downscale", type=int, default=1, help="time the iterations at 1/N of the image size (warm-up at full size)")
-    p.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "train_step.json"))
+    p.add_argument("--out", default=str(_harness.OUTPUTS / "train_step.json"))
     args = p.parse_args()
     results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra, args.downscale)
                for m in args.models}
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    record = _harness.record()
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else None
     size = next(iter(results.values()))["size"]
-    print(f"{gpu or cpu}, {torch.get_num_threads()} threads, backend {args.backend}, {size}, medians of {args.iters} iterations "
-          f"after {args.warmup} of a {args.schedule}-step schedule")
+    print(f"{gpu or record['machine']['cpu']}, {torch.get_num_threads()} threads, backend {args.backend}, {size}, "
+          f"medians of {args.iters} iterations after {args.warmup} of a {args.schedule}-step schedule")
     keys = ["decode", "raster_fwd", "loss", "backward", "step+stats", "total"]
     print(f"| model | Gaussians drawn | anchors | {' | '.join(k + ' ms' for k in keys)} | it/s |")
     print("|---|---|---|" + "---|" * (len(keys) + 1))
     for m, r in results.items():
         cells = " | ".join(f"{1000 * r[k]:.1f}" for k in keys)
         print(f"| {m} | {r['gaussians']:.0f} | {r['anchors']} | {cells} | {1 / r['total']:.2f} |")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    record = {"cpu": cpu, "gpu": gpu, "threads": torch.get_num_threads(), "args": vars(args), "results": results}
-    out.write_text(json.dumps(record, indent=2))
+    _harness.write_json(args.out, {**record, "gpu": gpu, "args": vars(args), "results": results})
 
 
 if __name__ == "__main__":
