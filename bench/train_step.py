@@ -8,7 +8,9 @@ point of a real run has), then `--iters` timed ones. Per step: decode (model.dec
 (forward), loss (model.loss), backward (manual_backward), step+stats (the rest of training_step:
 view sampling, densification statistics, learning rates, Adam step, densification) and total
 (the step's own clock, GaussianMapperModule.iteration_ms: what segs.train reports as
-train/iteration_ms). Prints one table (medians) and writes outputs/bench/train_step.json.
+train/iteration_ms). The warm-up runs at full size and the timed steps at 1/--downscale, whatever
+the experiment's coarse-to-fine schedule. Prints one table (medians) and writes
+outputs/bench/train_step.json.
 
     python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
     python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
@@ -50,9 +52,9 @@ class StepTimes(L.Callback):
         module.model.decode = self._timed("decode", module.model.decode)
         module.model.loss = self._timed("loss", module.model.loss)
         module.manual_backward = self._timed("backward", module.manual_backward)
-        if factor != 1:  # the timed steps at 1/factor size (coarse-to-fine's schedule otherwise)
-            schedule = module.resolution_factor
-            module.resolution_factor = lambda step: factor if self.steps >= warmup else schedule(step)
+        # the warm-up at full size, the timed steps at 1/factor size, whatever the configured
+        # coarse-to-fine schedule (mapping.num_downscales) would give at those steps
+        module.resolution_factor = lambda step: factor if self.steps >= warmup else 1
 
     def _timed(self, name: str, fn):
         def timed(*args, **kwargs):
