@@ -54,10 +54,13 @@ DATASETS = {
                 "data.downscale=2", "eval.holdout_every=8"],
     "sample": ["+experiment=sample"],
 }  # fmt: skip
-# segs_c2f: SEGS with the coarse-to-fine resolution (1/4 size for the first quarter of the steps,
-# 1/2 for the next); its warm-up runs at 1/4 size, so give it --max-steps or --pace-from
+# segs: the defaults of the dataset's experiment (the sample: coarse-to-fine; 7-Scenes: full size);
+# segs_c2f / segs_full_size: SEGS with the coarse-to-fine resolution (1/4 size for the first quarter
+# of the steps, 1/2 for the next) / at full size throughout, whatever the experiment's default. A
+# coarse-to-fine warm-up runs at 1/4 size, so give such curves --max-steps or --pace-from
 METHODS = {"segs": [], "plain_3dgs": ["+ablation=plain_3dgs"],
-           "segs_c2f": ["mapping.num_downscales=2", "mapping.downscale_phase=0.25"]}  # fmt: skip
+           "segs_c2f": ["mapping.num_downscales=2", "mapping.downscale_phase=0.25"],
+           "segs_full_size": ["mapping.num_downscales=0"]}  # fmt: skip
 MARKS = (15, 30, 60, 120, 300, 600, 1200, 1800, 3600)
 TABLE_MINUTES = (1, 2, 5, 10)
 PROVISIONAL_STEPS_PER_S = 10.0  # max_steps of the warm-up run only (its schedule is not used)

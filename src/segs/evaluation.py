@@ -86,6 +86,7 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
     steps = timing.get("steps", 0)
     dropped = int(getattr(sequence, "dropped", 0) or 0)
     summary = {
+        "sequence": getattr(sequence, "name", ""),
         "iterations": steps,
         "wall_time_s": timing.get("wall_s"),
         "mapping_time_s": timing.get("fit_s"),
