@@ -155,6 +155,8 @@ def test_calibrated_registration_aligns_depth_edges_with_colour_edges(seven_scen
 
 _FAULTS = """
 import resource, sys, threading
+from segs import process_settings
+process_settings.apply()  # as segs's programs do
 from segs.data.seven_scenes import SevenScenesSequence
 seq = SevenScenesSequence(sys.argv[1])
 seq[0]
@@ -171,8 +173,8 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 
 @pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc's allocator settings")
 def test_frames_read_in_a_thread_reuse_freed_memory(seven_scenes_root):
-    """Importing segs keeps freed heap memory for the next frame (mallopt): reading real frames in
-    a thread, as the frame source does, costs a fraction of the page faults it costs with glibc's
+    """The process settings keep freed heap memory for the next frame (mallopt): reading real frames
+    in a thread, as the frame source does, costs a fraction of the page faults it costs with glibc's
     defaults (SEGS_MALLOC=default), where each frame's large buffers are fresh mappings."""
     import os
     import subprocess

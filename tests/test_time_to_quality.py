@@ -5,7 +5,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -18,8 +17,6 @@ EVAL_SLEEP_S = 0.5  # added to every evaluation: a clock that counted it would o
 
 
 def _bench():
-    if str(ROOT / "bench") not in sys.path:  # the script imports bench/_harness.py, as `python bench/...` finds it
-        sys.path.insert(0, str(ROOT / "bench"))
     spec = importlib.util.spec_from_file_location("time_to_quality_bench", ROOT / "bench" / "time_to_quality.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
