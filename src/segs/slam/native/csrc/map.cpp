@@ -1,7 +1,7 @@
 // Map bookkeeping of local mapping in C++: loops over the map's observation dictionaries
 // (point -> {keyframe id: keypoint index}) that cost tens of milliseconds per keyframe as Python
 // bytecode. Each function reads the dictionaries through the CPython API under the GIL and
-// returns what the Python loop it replaces computed (segs.slam.local_mapping / segs.slam.map).
+// returns what the Python loop it replaces computed (segs.slam.backend.local_mapping / segs.slam.map.map).
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 

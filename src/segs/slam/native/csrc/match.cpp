@@ -2,7 +2,7 @@
 //
 // 1. Projection search: grid radius query, octave / free / right-coordinate filters, Hamming
 //    distances and the best / second-best candidate per query, in one pass.
-//    It replaces, result for result, the numpy pipeline of segs.slam.matching.search_projection up
+//    It replaces, result for result, the numpy pipeline of segs.slam.estimation.matching.search_projection up
 // to its ratio test: KeypointGrid.query -> filters -> hamming_pairs -> best_two. Candidates are
 // visited in the order the numpy query lists them (cell rows top to bottom, within a row the grid
 // order: cells left to right, keypoints by index), and a candidate replaces the best only when
@@ -51,7 +51,7 @@ i64 cell_of(double v, double cell, i64 n) {
 // kp_ur [N] (-1 = none) or empty, q [M,2], radius [M], lo / hi [M], q_ur [M] or empty,
 // q_desc [M,32]; gate_z [M] (empty: no gate) with sigma2 [levels], inv_ur_sigma2 (<= 0: the
 // octave's), bf and the chi-square thresholds: keep only candidates whose reprojection error
-// passes (segs.slam.local_mapping's fusion). Returns (queries [Q] ascending, best keypoint [Q], best distance [Q] int64,
+// passes (segs.slam.backend.local_mapping's fusion). Returns (queries [Q] ascending, best keypoint [Q], best distance [Q] int64,
 // second distance [Q] float64, inf when the query had one candidate).
 py::tuple best_two_in_radius(Arr<i64> start, Arr<i64> order, Arr<double> kp_uv, Arr<i64> kp_oct,
                              Arr<std::uint8_t> kp_desc, Arr<i64> kp_points, Arr<double> kp_ur,

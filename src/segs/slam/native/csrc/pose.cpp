@@ -1,7 +1,7 @@
 // The motion-only pose kernels of the ORB frontend in C++.
 //
-// solve_pose: segs.slam.optimize._solve_pose (Levenberg-Marquardt on a w2c from pose-only
-// reprojection edges). refine_pose: segs.slam.optimize.refine_pose around it (ORB-SLAM's
+// solve_pose: segs.slam.estimation.optimize._solve_pose (Levenberg-Marquardt on a w2c from pose-only
+// reprojection edges). refine_pose: segs.slam.estimation.optimize.refine_pose around it (ORB-SLAM's
 // PoseOptimization: rounds of Huber-reweighted LM with the chi-square inlier classification
 // between rounds), so that a frame's pose refinement is one call without the interpreter.
 // Both follow the Python code operation for operation; results agree to rounding (the rotation's
@@ -23,10 +23,10 @@ namespace {
 using segs_slam::Arr;
 using segs_slam::i64;
 
-constexpr double kChi2Mono = 5.991, kChi2Stereo = 7.815;  // segs.slam.optimize.CHI2_MONO / _STEREO
+constexpr double kChi2Mono = 5.991, kChi2Stereo = 7.815;  // segs.slam.estimation.optimize.CHI2_MONO / _STEREO
 
 // Whitened residuals and J^T J, J^T r of the pose-only reprojection edges at pose (R, t), as in
-// segs.slam.optimize._pose_system. Returns the cost r . r.
+// segs.slam.estimation.optimize._pose_system. Returns the cost r . r.
 struct PoseProblem {
   const double *P, *uv, *ur, *w, *w_ur;
   const bool* stereo;
@@ -90,7 +90,7 @@ bool solve6(double* A, double* b, double* x) {
   return true;
 }
 
-// T <- exp(dx) T, exp as segs.slam.optimize._se3_exp: Rodrigues rotation, first-order translation.
+// T <- exp(dx) T, exp as segs.slam.estimation.optimize._se3_exp: Rodrigues rotation, first-order translation.
 void left_update(const double* dx, const double* T, double* out) {
   const double th = std::sqrt(dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]);
   double R[9] = {1, 0, 0, 0, 1, 0, 0, 0, 1};
@@ -110,7 +110,7 @@ void left_update(const double* dx, const double* T, double* out) {
 }
 
 
-// Levenberg-Marquardt as segs.slam.optimize._solve_pose on T [4,4] (in place).
+// Levenberg-Marquardt as segs.slam.estimation.optimize._solve_pose on T [4,4] (in place).
 void lm_pose(const PoseProblem& pr, double* T, int evaluations) {
   double H[36], g[6], H2[36], g2[6], A[36], b[6], dx[6], T2[16];
   double cost = pr.system(T, H, g), lam = 1e-4;
@@ -165,7 +165,7 @@ void orthonormalize(double* T) {
   T[15] = 1.0;
 }
 
-// segs.slam.optimize.reproj_chi2 of one observation i at pose T -> chi2; z and the stereo flag out.
+// segs.slam.estimation.optimize.reproj_chi2 of one observation i at pose T -> chi2; z and the stereo flag out.
 inline double chi2_at(const double* T, const double* P, const double* uv, const double* ur, const double* inv_s2,
                       double fx, double fy, double cx, double cy, double bf, double inv_ur_sigma2, i64 i, double& z,
                       bool& st) {
@@ -184,7 +184,7 @@ inline double chi2_at(const double* T, const double* P, const double* uv, const 
   return chi2;
 }
 
-// Levenberg-Marquardt as segs.slam.optimize._solve_pose: w2c [4,4], P [M,3], uv [M,2], ur [M] or
+// Levenberg-Marquardt as segs.slam.estimation.optimize._solve_pose: w2c [4,4], P [M,3], uv [M,2], ur [M] or
 // empty, w [M], K [3,3], stereo [M] bool or empty, w_ur [M] or empty -> w2c [4,4].
 py::array_t<double> solve_pose(Arr<double> w2c, Arr<double> P, Arr<double> uv, Arr<double> ur,
                                Arr<double> w, Arr<double> K, double bf, Arr<bool> stereo,
@@ -203,7 +203,7 @@ py::array_t<double> solve_pose(Arr<double> w2c, Arr<double> P, Arr<double> uv, A
   return result;
 }
 
-// segs.slam.optimize.refine_pose: w2c0 [4,4], P [M,3], uv [M,2], ur [M] or empty (monocular),
+// segs.slam.estimation.optimize.refine_pose: w2c0 [4,4], P [M,3], uv [M,2], ur [M] or empty (monocular),
 // inv_sigma2 [M], K [3,3], bf, rounds, min_inliers, iterations (LM evaluations per solve),
 // ur_sigma (0: None, the octave's sigma), warm -> (w2c [4,4], inliers [M] bool).
 py::tuple refine_pose(Arr<double> w2c0, Arr<double> P, Arr<double> uv, Arr<double> ur, Arr<double> inv_sigma2,
