@@ -128,8 +128,13 @@ def step_scale(
     ref = _trajectory(timestamps[gt_idx], gt_c2w[gt_idx])
     traj = _trajectory(timestamps[idx], est)
     ref, traj = sync.associate_trajectories(ref, traj, max_diff=max_diff)
+    if ref.num_poses < window + 1:
+        return {**empty, "reason": f"fewer than {window} associated steps"}
     traj = copy.deepcopy(traj)
-    traj.align(ref, correct_scale=True)
+    try:
+        traj.align(ref, correct_scale=True)
+    except GeometryException:  # camera centres on a point or a line: no scale to compare
+        return {**empty, "reason": "degenerate alignment"}
     d_est = np.linalg.norm(np.diff(traj.positions_xyz, axis=0), axis=1)
     d_ref = np.linalg.norm(np.diff(ref.positions_xyz, axis=0), axis=1)
     kernel = np.ones(window)
