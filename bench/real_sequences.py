@@ -4,6 +4,7 @@
     python bench/real_sequences.py --only kitti 7scenes_0000_0299_mono
     python bench/real_sequences.py --compare outputs/bench/real_sequences/before.json
     python bench/real_sequences.py --jobs 2             # two rows at a time (timings then share the CPU)
+    python bench/real_sequences.py --only 7scenes --override "data.intrinsics=[585,585,320,240]"
 
 Rows (each `python -m segs.track +experiment=... data.root=...`, nothing else overridden):
 - 7-Scenes redkitchen frames 0-299 and 300-599 (`../shared/data/7scenes_redkitchen_0000_0599`),
@@ -69,10 +70,11 @@ def rows(shared: Path) -> list[dict]:
     return out
 
 
-def track(row: dict, out: Path) -> dict:
-    """One `python -m segs.track` run of a row -> its tracking.json figures (+ the two-view baseline)."""
+def track(row: dict, out: Path, extra: list[str]) -> dict:
+    """One `python -m segs.track` run of a row (+ extra overrides) -> its tracking.json figures
+    (+ the two-view baseline)."""
     run_dir = out / row["name"]
-    cmd = [sys.executable, "-m", "segs.track", *row["overrides"], f"data.root={row['root']}",
+    cmd = [sys.executable, "-m", "segs.track", *row["overrides"], f"data.root={row['root']}", *extra,
            f"hydra.run.dir={run_dir}"]  # fmt: skip
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
@@ -160,6 +162,8 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, help="row names (prefixes) to run")
     ap.add_argument("--jobs", type=int, default=1, help="rows run at a time (default 1: timings not shared)")
     ap.add_argument("--compare", type=Path, default=None, help="an earlier JSON of this script")
+    ap.add_argument("--override", nargs="*", default=[],
+                    help="config overrides added to every selected row (measuring a candidate default)")
     ap.add_argument("--out", type=Path, default=None, help="JSON path (default outputs/bench/real_sequences/<time>.json)")
     a = ap.parse_args()
     if a.jobs < 1:
@@ -176,7 +180,7 @@ def main() -> None:
             todo.append(row)
     load0 = os.getloadavg()[0]
     with ThreadPoolExecutor(a.jobs) as pool:
-        for row, r in zip(todo, pool.map(lambda row: track(row, out), todo)):
+        for row, r in zip(todo, pool.map(lambda row: track(row, out, a.override), todo)):
             results[row["name"]] = r
             ate_s = r.get("error") or _cm(r.get("ate_rmse_m"))
             print(f"{row['name']}: {r.get('frames_tracked', '-')}/{r.get('frames', '-')} tracked, ATE {ate_s} "
@@ -185,7 +189,7 @@ def main() -> None:
     print_table(selected, results)
     record = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "code": code_version(),
               "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg_1m": [load0, os.getloadavg()[0]]},
-              "jobs": a.jobs, "rows": results}  # fmt: skip
+              "jobs": a.jobs, "overrides": a.override, "rows": results}  # fmt: skip
     if a.compare:
         record["compare"] = compare(results, a.compare)
     path = a.out or out.with_suffix(".json")
