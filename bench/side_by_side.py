@@ -5,7 +5,7 @@
 
 A before / after comparison run one after the other measures the host as much as the code: on
 this 2-core machine the same code ran 17.1 and 20.4 frames/s a few minutes apart (docs/
-performance.md, "Local mapping's dictionary loops in C++, second round"). Here each pair starts two
+decisions/015-frontend-cpp-kernels.md). Here each pair starts two
 worker processes at once, one with this checkout's `segs` and one with the `segs` of --against (a
 `src` folder: a git worktree of the reference commit), each single-threaded (one OpenCV thread, one
 BLAS / OpenMP thread: one core each). Both decode the frames first (outside the timing), wait at a

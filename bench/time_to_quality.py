@@ -20,9 +20,9 @@ Schedule length: the LR / densification schedules scale with trainer.max_steps, 
 this order: --max-steps (every curve); with --pace-from JSON the steps the same curve reached in
 that earlier output; else from a --warmup-s second warm-up of the same run (discarded):
 steps/s of the warm-up's second half x (budget - feeding seconds). The warm-up sees the map
-before it grows, so on a growing map it overestimates (docs/performance.md: the 7-Scenes
-schedules were 52-56 % done at the budget); the JSON records max_steps, the steps reached and
-schedule_done per curve. A run that reaches max_steps before the budget ends there.
+before it grows, so on a growing map it overestimates (docs/performance.md "Time to quality":
+neither 7-Scenes schedule was done at 10 minutes); the JSON records max_steps, the steps reached
+and schedule_done per curve. A run that reaches max_steps before the budget ends there.
 
 Each curve runs in its own process (peak RSS per curve). Output: outputs/bench/time_to_quality.json
 (every point: method, dataset, seconds, steps, psnr, ssim, anchors, gaussians, peak_rss_mb,
@@ -52,10 +52,13 @@ DATASETS = {
                 "data.downscale=2", "eval.holdout_every=8"],
     "sample": ["+experiment=sample"],
 }  # fmt: skip
-# segs_c2f: SEGS with the coarse-to-fine resolution (1/4 size for the first quarter of the steps,
-# 1/2 for the next); its warm-up runs at 1/4 size, so give it --max-steps or --pace-from
+# segs: the defaults of the dataset's experiment (the sample: coarse-to-fine; 7-Scenes: full size);
+# segs_c2f / segs_full_size: SEGS with the coarse-to-fine resolution (1/4 size for the first quarter
+# of the steps, 1/2 for the next) / at full size throughout, whatever the experiment's default. A
+# coarse-to-fine warm-up runs at 1/4 size, so give such curves --max-steps or --pace-from
 METHODS = {"segs": [], "plain_3dgs": ["+ablation=plain_3dgs"],
-           "segs_c2f": ["mapping.num_downscales=2", "mapping.downscale_phase=0.25"]}  # fmt: skip
+           "segs_c2f": ["mapping.num_downscales=2", "mapping.downscale_phase=0.25"],
+           "segs_full_size": ["mapping.num_downscales=0"]}  # fmt: skip
 # no loggers, bars, image logging, checkpoints or signal handlers: the clock times mapping only
 QUIET = ["logger=none", "~callbacks.progress_bar", "~callbacks.image_logger", "~callbacks.periodic_checkpoint", "~callbacks.interrupt",
          "callbacks.slam_bridge.progress=false", "trainer.enable_progress_bar=false", "eval.progress=false"]  # fmt: skip

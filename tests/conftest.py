@@ -1,4 +1,8 @@
-"""Shared fixtures: composed configs for tiny CPU runs."""
+"""Shared fixtures: composed configs for tiny CPU runs, the shared real data; the `slow` mark.
+
+`pytest` runs the fast suite (pyproject.toml: -m "not slow"); `pytest -m slow` runs the rest:
+long end-to-end runs (marked where they are defined) and every test that reads the shared real
+data in ../shared/data (marked here, by the fixture that finds it). CI runs both."""
 from __future__ import annotations
 
 import os
@@ -61,3 +65,13 @@ def kitti_root():
     if not (KITTI / "image_0").is_dir():
         pytest.skip(f"KITTI frames not found at {KITTI} (shared data, not in the repository)")
     return KITTI
+
+
+# fixtures that find real data outside the repository (../shared/data): their tests are slow
+SHARED_DATA_FIXTURES = {"seven_scenes_root", "kitti_root"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if SHARED_DATA_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)

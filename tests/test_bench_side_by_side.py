@@ -8,10 +8,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "bench" / "side_by_side.py"
 
 
+@pytest.mark.slow
 def test_both_sides_run_the_same_frames_and_report_ratios(tmp_path):
     out = tmp_path / "sbs.json"
     res = subprocess.run([sys.executable, str(SCRIPT), "--against", str(ROOT / "src"), "--sequence", "synthetic",

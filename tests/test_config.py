@@ -79,6 +79,7 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "segs.train", *args], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("override", ["+experiment=does_not_exist", "+ablation=does_not_exist"])
 def test_cli_unknown_experiment_or_ablation_fails_with_one_clear_line(tmp_path, override):
     r = _cli(override, f"paths.log_dir={tmp_path}", cwd=tmp_path)
@@ -154,6 +155,7 @@ def test_plain_3dgs_drops_segs_keys_by_name_and_rejects_keys_of_neither_model(tm
 
 @pytest.mark.parametrize("override,needle", [("+model.fpr.until_stp=100", "model.fpr.until_stp"),
                                              ("model.loss.lambda_hf=0.02", "model.fpr.weight")])  # fmt: skip
+@pytest.mark.slow
 def test_cli_unknown_or_renamed_model_key_exits_2_in_one_line(override, needle, tmp_path):
     r = _cli(override, f"paths.log_dir={tmp_path}", cwd=tmp_path)
     assert r.returncode == 2, r.stderr

@@ -22,6 +22,7 @@ class RecordingMapper:
 
     def __init__(self):
         self.iteration_ms: list[float] = []
+        self.raster_backend = None
         self.calls: list[tuple[str, object]] = []
 
     def add_keyframes(self, views):

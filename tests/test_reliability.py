@@ -25,6 +25,7 @@ def _cli(args: list[str], **kw) -> subprocess.Popen:
                             text=True, env=env, **kw)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_signal_stops_at_a_step_boundary_and_the_run_resumes(tmp_path, sig, code):
     out = tmp_path / "run"
@@ -118,6 +119,7 @@ def _lines(err: str) -> list[str]:
     return [line for line in err.splitlines() if line.strip() and "Warning" not in line and "warn(" not in line]
 
 
+@pytest.mark.slow
 def test_a_folder_holding_a_finished_run_is_refused_before_anything_is_written(tmp_path):
     out = tmp_path / "run"
     first = subprocess.run([sys.executable, "-m", "segs.train", *TINY, "trainer.max_steps=5", f"hydra.run.dir={out}"],
@@ -131,6 +133,7 @@ def test_a_folder_holding_a_finished_run_is_refused_before_anything_is_written(t
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before  # overrides.yaml, log, metrics untouched
 
 
+@pytest.mark.slow
 def test_a_folder_another_run_is_writing_into_is_refused(tmp_path):
     # this test process holds the folder as a running segs.train does (the same flock)
     from segs.run_folder import claim, release

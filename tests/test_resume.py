@@ -40,6 +40,7 @@ def uninterrupted(tmp_path_factory):
     return make, run(make(out=out)), out
 
 
+@pytest.mark.slow
 def test_a_run_interrupted_at_a_step_and_resumed_is_the_uninterrupted_run(uninterrupted, tmp_path):
     make, whole, _ = uninterrupted
     out = tmp_path / "resumed"

@@ -25,6 +25,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
 
 
+@pytest.mark.slow
 def test_forward_corridor_keeps_scale():
     """0.49 m per frame down the corridor (10 % of the median depth): every frame after the
     two-view initialization tracked, ATE under 1 % of the 24 m path, and the estimated / true
@@ -144,6 +145,7 @@ def test_two_view_baseline_recovers_each_step():
     assert bench.path_length(seq.gt_poses) == pytest.approx(0.3 * 24.0, rel=0.02)
 
 
+@pytest.mark.slow
 def test_monocular_pacing_holds_a_slow_view_and_yields_to_a_turning_one():
     """kf_min_gap_mono paces ratio-rule keyframes; kf_view_change_deg_mono lets them through once
     the view has turned. On an orbit at 3 degrees per frame: with the waiver the keyframes and the

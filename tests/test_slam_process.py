@@ -228,6 +228,7 @@ def test_bad_slam_mode_is_a_config_error(tmp_path):
         validate(cfg)
 
 
+@pytest.mark.slow
 def test_track_and_train_run_with_the_frontend_in_a_process(tmp_path):
     from segs.track import run as track
     from segs.train import run as train

@@ -32,6 +32,7 @@ def _check_run(fe, seq, run, n=None):
     return traj
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sensor,frames,min_tracked", [("rgbd", 58, 55), ("mono", 30, 5)])
 def test_tum_cabinet_tracks_without_error(sensor, frames, min_tracked):
     """The defaults on texture-poor, heavily compressed JPEGs (datasets/tum_fr3_cabinet_kf/README.md):

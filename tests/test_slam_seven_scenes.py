@@ -13,7 +13,7 @@ def test_seven_scenes_rgbd_lower_keyframe_ratio_keeps_tracking(seven_scenes_root
     slam.tracking.kf_ref_ratio=0.65: every frame tracked, ATE under 2.5 cm against KinectFusion's
     track, and a keyframe only as the view changes: at most 25 (0.65: 15; the default, ORB-SLAM3's
     0.75, makes 37 here because a frame tracks only 0.77 of its reference keyframe's points three
-    frames on; docs/performance.md "The keyframe ratio: speed against views")."""
+    frames on; docs/decisions/012-keyframe-ratio.md)."""
     seq = SevenScenesSequence(root=seven_scenes_root, sensor="rgbd", frames=[0, 150])
     fe = OrbFrontend(seq.camera, "rgbd", tracking={"kf_ref_ratio": 0.65})
     run_sequence(fe, seq)

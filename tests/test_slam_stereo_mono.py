@@ -16,6 +16,7 @@ def stereo_loop():
                              speed=71 / 59, seed=0)
 
 
+@pytest.mark.slow
 def test_stereo_loop_closing_reduces_drift(stereo_loop):
     seq = stereo_loop
     fe = OrbFrontend(seq.camera, "stereo")

@@ -72,6 +72,7 @@ def _multirun(tmp_path: Path, *overrides: str, launcher: str, base: list[str] = 
     return subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=240)
 
 
+@pytest.mark.slow
 def test_tiny_two_job_multirun_completes_and_reports(tmp_path):
     # the joblib launcher is a dependency of segs: this is the parallel sweep users run
     proc = _multirun(tmp_path, "+data.stress={kind:noise,level:0},{kind:noise,level:8}", launcher="local")
@@ -92,6 +93,7 @@ def test_tiny_two_job_multirun_completes_and_reports(tmp_path):
     assert json.loads((sweep / "0" / "metrics.json").read_text())["iterations"] == 6
 
 
+@pytest.mark.slow
 def test_a_failing_job_does_not_hide_the_other_and_is_recorded(tmp_path):
     # job 0 raises when Lightning's Trainer is built (a cheap failure that is not a user-input error:
     # those exit the whole process, see docs/experiments.md)
@@ -107,6 +109,7 @@ def test_a_failing_job_does_not_hide_the_other_and_is_recorded(tmp_path):
     assert "2 jobs: 1 finished, 1 crashed" in md and "invalid accelerator name" in md
 
 
+@pytest.mark.slow
 def test_a_job_whose_tracking_fails_is_a_result_not_a_crash(tmp_path):
     # every frame blank: the ORB frontend tracks nothing. A single run exits 2 with one line;
     # inside a sweep the job returns, metrics.json says "tracking_failed" and the sweep goes on.

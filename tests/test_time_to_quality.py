@@ -8,6 +8,8 @@ import math
 import time
 from pathlib import Path
 
+import pytest
+
 from conftest import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,6 +31,7 @@ def _slow(score):
     return slowed
 
 
+@pytest.mark.slow
 def test_curve_points_clock_and_outputs(tmp_path):
     bench = _bench()
     # the benchmark deletes the bars / loggers itself (a second deletion is a Hydra error)

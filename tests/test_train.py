@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from plyfile import PlyData
 
@@ -23,7 +24,7 @@ def test_short_training_lowers_loss_and_writes_every_output(tiny_cfg, tmp_path):
     assert m["status"] == "finished" and m["iterations"] == 60
     assert m["test_views"] > 0 and 5 < m["psnr"] < 60 and 0 < m["ssim"] <= 1
     assert m["lpips"] is None and "n/a" in m["lpips_note"]
-    assert m["ate_rmse_m"] < 1e-6  # known poses
+    assert m["ate_rmse_m"] is None and m["ate"]["reason"] == "ground-truth poses"  # known poses: nothing to score
     assert m["anchors"] > 0 and m["gaussians"] == 10 * m["anchors"]
     ply = PlyData.read(str(out / "point_cloud.ply"))
     names = {p.name for p in ply["vertex"].properties}
@@ -81,6 +82,7 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     assert bridge.cursor == state["callbacks"]["SlamBridge"]["cursor"] or bridge.finished
 
 
+@pytest.mark.slow
 def test_afme_beats_no_afme_on_test_views_under_an_exposure_change(tiny_cfg, tmp_path):
     """The paper's AfME claim on a sequence built to isolate it: the camera turns in place (every
     surface point keeps one viewing ray, so view-dependent colour cannot explain the frame's

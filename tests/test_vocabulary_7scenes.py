@@ -14,9 +14,6 @@ from segs.slam.orb import OrbFrontend
 from segs.slam.vocabulary import Vocabulary
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
-
-pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"real 7-Scenes frames not found at {DATA}")
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +25,8 @@ def bench():
 
 
 @pytest.fixture(scope="module")
-def seq(bench):
-    return bench.open_7scenes(DATA)
+def seq(bench, seven_scenes_root):
+    return bench.open_7scenes(seven_scenes_root)
 
 
 def test_retrieval_finds_covisible_frames_of_the_revisit(bench, seq):

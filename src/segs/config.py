@@ -146,6 +146,10 @@ def validate(cfg: DictConfig, mapper: bool = True) -> None:
             continue
         if not ok(value):
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
+    if OmegaConf.select(cfg, "eval", default=None) is not None:
+        from segs.eval_config import eval_config
+
+        eval_config(cfg.eval)
     if not mapper:
         return
     from segs.modules.config import mapping_config, model_config, raster_config
@@ -215,4 +219,5 @@ def make_frontend(cfg: DictConfig, sequence):
         return frontend
     from segs.slam.process import FrontendProcess
 
-    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0))
+    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0),
+                           uses_ground_truth_poses=frontend.uses_ground_truth_poses)

@@ -7,10 +7,7 @@ a finished result. The mapper is used only through segs.modules.contract.Gaussia
 """
 from __future__ import annotations
 
-import contextlib
-import json
 import logging
-import os
 from pathlib import Path
 from typing import Callable
 
@@ -20,34 +17,13 @@ import torch
 from tqdm import tqdm
 
 from segs.callbacks.memory import peak_rss_mb
+from segs.eval_config import EvalConfig
 from segs.modules.contract import GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
-from segs.trajectory import ate, estimated_c2w, write_tum
+from segs.run_folder import write_json_atomic
+from segs.trajectory import GROUND_TRUTH_POSES, estimated_c2w, frontend_ate, lost_ranges, write_tum
 
 log = logging.getLogger(__name__)
-
-
-def lost_ranges(lost: list[int]) -> list[list[int]]:
-    """Sorted frame indices -> [[first, last], ...] runs."""
-    runs: list[list[int]] = []
-    for i in sorted(lost):
-        if runs and i == runs[-1][1] + 1:
-            runs[-1][1] = i
-        else:
-            runs.append([i, i])
-    return runs
-
-
-def write_json_atomic(path: Path, data: dict) -> None:
-    """path written whole or not at all (a failed or interrupted write leaves no .tmp)."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
 
 
 def _save_pair(path: Path, render: torch.Tensor, gt: np.ndarray) -> None:
@@ -110,6 +86,7 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
     steps = timing.get("steps", 0)
     dropped = int(getattr(sequence, "dropped", 0) or 0)
     summary = {
+        "sequence": getattr(sequence, "name", ""),
         "iterations": steps,
         "wall_time_s": timing.get("wall_s"),
         "mapping_time_s": timing.get("fit_s"),
@@ -140,22 +117,23 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
     return summary
 
 
-def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg, out: Path, timing: dict, notes: dict | None = None,
-             watch: Callable[[str], None] | None = None) -> dict:  # fmt: skip
+def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg: EvalConfig, out: Path, timing: dict, notes: dict | None = None,
+             watch: Callable[[str], None] | None = None, provenance: dict | None = None) -> dict:  # fmt: skip
     """Compute and write every result file of a run; returns the metrics dict (metrics.json, last).
 
     notes: extra entries for metrics.json (e.g. why the final checkpoint is missing);
-    watch: called before each test view (memory guard)."""
+    watch: called before each test view (memory guard); provenance: segs.provenance's record,
+    completed here with the raster backend that rendered the test views."""
     out.mkdir(parents=True, exist_ok=True)
     frontend = bridge.frontend
     trajectory = frontend.trajectory()
     test = bridge.test_frames()
-    images = render_test_views(module, sequence, trajectory, test, eval_cfg.get("lpips_weights"), int(eval_cfg.get("save_renders", 4)),
-                               out, bool(eval_cfg.get("progress", True)), float(eval_cfg.get("active_opacity", 0.005)), watch)  # fmt: skip
+    images = render_test_views(module, sequence, trajectory, test, eval_cfg.lpips_weights, eval_cfg.save_renders, out,
+                               eval_cfg.progress, eval_cfg.active_opacity, watch)  # fmt: skip
     idx, c2w = estimated_c2w(trajectory)
     write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
-    ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))
-    if eval_cfg.get("write_ply", True):
+    ate_result = frontend_ate(frontend, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.ate_align)
+    if eval_cfg.write_ply:
         module.export_ply(out / "point_cloud.ply")
     summary = run_summary(module, sequence, bridge, timing)
     metrics = {
@@ -166,27 +144,33 @@ def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg, out: Path, timi
         **summary,
         **(notes or {}),
         "status": "finished",
+        "provenance": {**(provenance or {}), "raster_backend": module.raster_backend},
     }
-    if summary["lost_frames"]:
+    if ate_result.get("reason") == GROUND_TRUTH_POSES:
+        metrics["ate_note"] = "n/a: the frontend replays the ground-truth poses (slam=known_poses); no trajectory was estimated"
+    elif summary["lost_frames"]:
         metrics["ate_note"] = f"{summary['lost_frames']} untracked frames have no pose and are excluded from ATE and test views"
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
 
 
-def write_not_evaluated(module: GaussianMapper, sequence, bridge, out: Path, timing: dict, notes: dict | None = None) -> dict:
+def write_not_evaluated(module: GaussianMapper, sequence, bridge, out: Path, timing: dict, notes: dict | None = None,
+                        provenance: dict | None = None) -> dict:  # fmt: skip
     """metrics.json of a run trained with eval.enabled=false (status "not_evaluated"): the run's
     numbers without any test-view or trajectory metric."""
     out.mkdir(parents=True, exist_ok=True)
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
     metrics = {**none, "test_views": 0, **run_summary(module, sequence, bridge, timing), **(notes or {}), "status": "not_evaluated",
-               "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed"}  # fmt: skip
+               "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed",
+               "provenance": {**(provenance or {}), "raster_backend": module.raster_backend}}  # fmt: skip
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
 
 
-def write_tracking_failed(out: Path, err, frames_tracked: int, wall_s: float) -> dict:
+def write_tracking_failed(out: Path, err, frames_tracked: int, wall_s: float, provenance: dict | None = None) -> dict:
     """metrics.json of a run whose frontend tracked nothing mappable (status "tracking_failed"):
-    the tracking numbers it has, no image or model metric. err: the TrackingFailed raised."""
+    the tracking numbers it has, no image or model metric. err: the TrackingFailed raised;
+    provenance: segs.provenance's record."""
     out.mkdir(parents=True, exist_ok=True)
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "mapping_time_s", "iterations_per_s", "tracking_fps"))
     metrics = {
@@ -204,6 +188,7 @@ def write_tracking_failed(out: Path, err, frames_tracked: int, wall_s: float) ->
         "anchors": 0,
         "gaussians": 0,
         "peak_rss_mb": peak_rss_mb(),
+        "provenance": provenance,
     }
     write_json_atomic(out / "metrics.json", metrics)
     return metrics

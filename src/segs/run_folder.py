@@ -16,7 +16,9 @@ A multirun claims its sweep folder the same way and refuses one that already hol
 """
 from __future__ import annotations
 
+import contextlib
 import fcntl
+import json
 import os
 import socket
 import sys
@@ -125,3 +127,16 @@ class ClaimRunFolder(Callback):
             claim(_select(config, "hydra.sweep.dir"), key="hydra.sweep.dir", sweep=True)
         except ConfigError as err:
             _refuse(err)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    """A result file (metrics.json, tracking.json) written whole or not at all: a failed or
+    interrupted write leaves neither a truncated file nor its .tmp."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False))
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise

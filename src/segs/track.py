@@ -14,9 +14,7 @@ Run folder: outputs/track/runs/<time> (task_name=track unless given).
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,31 +24,17 @@ from omegaconf import DictConfig, OmegaConf
 
 from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
+from segs.provenance import provenance
+from segs.run_folder import write_json_atomic
 from segs.slam.process import FrontendProcess
 from segs.slam.runner import RunResult, run_sequence
-from segs.trajectory import ate, step_scale, write_trajectory
+from segs.trajectory import frontend_ate, lost_ranges, step_scale, write_trajectory
 
 log = logging.getLogger("segs.track")
 # frames read and prepared ahead of tracking, in a child process (slam_mode=interleaved): enough to
-# cover a keyframe's local mapping (docs/performance.md "The frame reader in a process of its own")
+# cover a keyframe's local mapping (docs/decisions/014-frame-reader-process.md)
 PREFETCH = 16
-
-
-def lost_ranges(lost: list[int]) -> list[list[int]]:
-    """[3, 4, 5, 9] -> [[3, 5], [9, 9]] (inclusive ranges)."""
-    out: list[list[int]] = []
-    for i in lost:
-        if out and i == out[-1][1] + 1:
-            out[-1][1] = i
-        else:
-            out.append([i, i])
-    return out
-
-
-def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+REASON = "reason"  # why tracking.json's ate has no figure
 
 
 def run(cfg: DictConfig, progress: bool = True) -> dict:
@@ -99,7 +83,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         for k, i in sorted(kfs.items()):
             f.write(f"{k} {i} {sequence.timestamps[i]:.6f}\n")
     lost = frontend.lost_frames()
-    ate_result = ate(sequence.timestamps, traj, sequence.gt_poses, align=align)
+    ate_result = frontend_ate(frontend, sequence.timestamps, traj, sequence.gt_poses, align)
     stats = frontend.stats() if hasattr(frontend, "stats") else {}
     n = len(sequence)
     processed = frontend.frames_done if isinstance(frontend, FrontendProcess) else n  # live: less
@@ -119,7 +103,8 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         "ate_rmse_m": ate_result["rmse"],
         "ate": ate_result,
         "step_scale": (step_scale(sequence.timestamps, traj, sequence.gt_poses)
-                       if align == "sim3" and sequence.gt_poses is not None else None),
+                       if align == "sim3" and sequence.gt_poses is not None
+                       and not getattr(frontend, "uses_ground_truth_poses", False) else None),
         # process(): tracking and, single-threaded, local mapping and loop closing
         "tracking_fps": processed / result.process_s if result.process_s > 0 else None,
         "process_s": result.process_s,
@@ -130,8 +115,9 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         "wall_fps": processed / wall if wall > 0 else None,
         "frontend": stats,
         "points": int(len(result.update.points)),
+        "provenance": provenance(cfg, sequence.sensor),
     }
-    _write_json(out / "tracking.json", metrics)
+    write_json_atomic(out / "tracking.json", metrics)
     rmse = ate_result["rmse"]
     print(
         f"\nsegs.track: results in {out}\n"
@@ -139,7 +125,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         f"{len(result.update.points)} map points"
         + (f", {stats['depth_retries']} frames by the depth-tolerant retry" if stats.get("depth_retries") else "")
         + "\n"
-        f"  ATE RMSE ({align}) {'n/a' if rmse is None else f'{rmse * 100:.2f} cm'}"
+        f"  ATE RMSE ({align}) {f'n/a ({ate_result.get(REASON)})' if rmse is None else f'{rmse * 100:.2f} cm'}"
         f" over {ate_result['pairs']} frames\n"
         f"  {metrics['tracking_fps'] or 0:.1f} frames/s in process() ({result.process_s:.1f} s), "
         f"finish {result.finish_s:.1f} s, wall {wall:.1f} s ({metrics['wall_fps'] or 0:.1f} frames/s)"

@@ -26,9 +26,11 @@ from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
 from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import DataError, TrackingFailed
+from segs.eval_config import eval_config
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
+from segs.provenance import provenance
 from segs.slam.process import FrontendProcess
 
 log = logging.getLogger("segs.train")
@@ -123,7 +125,7 @@ def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper,
         # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
         trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
     except TrackingFailed as err:  # the method's result on this input: recorded, then reported
-        write_tracking_failed(out, err, len(frontend.trajectory()), time.perf_counter() - t_start)
+        write_tracking_failed(out, err, len(frontend.trajectory()), time.perf_counter() - t_start, _provenance(cfg, sequence, module))
         raise
     except SIGTERMException:  # Lightning's own SIGTERM handling stopped the loop (exit code 0 otherwise)
         if isinstance(stopper, GracefulInterrupt) and stopper.checkpoint is None:
@@ -145,18 +147,31 @@ def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper,
     with phase("now"):
         bridge.complete_sequence()
         timing = {"steps": trainer.global_step, "fit_s": record.fit_seconds(), "wall_s": record.wall_seconds(), "sessions": record.sessions}
-        if not cfg.eval.enabled:
-            metrics = write_not_evaluated(module, sequence, bridge, out, timing, notes)
+        made = _provenance(cfg, sequence, module)
+        evaluation = eval_config(cfg.eval)
+        if not evaluation.enabled:
+            metrics = write_not_evaluated(module, sequence, bridge, out, timing, notes, made)
             print(f"\nsegs: results in {out} (eval.enabled=false: no test view rendered)\n  {metrics['iterations']} iterations, "
                   f"{metrics['anchors']} anchors; metrics.json{', checkpoints/final.ckpt' if saved['final'] else ''}")  # fmt: skip
             return metrics
-        metrics = evaluate(module, sequence, bridge, cfg.eval, out, timing, notes, watch)
+        metrics = evaluate(module, sequence, bridge, evaluation, out, timing, notes, watch, made)
     _print_summary(out, metrics)
     return metrics
 
 
+def _provenance(cfg: DictConfig, sequence, module: GaussianMapperModule) -> dict:
+    return provenance(cfg, sequence.sensor, module.raster_backend, str(module.device))
+
+
 def _fmt(v, spec: str) -> str:
     return "n/a" if v is None else format(v, spec)
+
+
+def _ate_line(m: dict) -> str:
+    """'ATE RMSE 2.67 cm over 600/600 tracked frames', or n/a with the reason."""
+    rmse, reason = m.get("ate_rmse_m"), (m.get("ate") or {}).get("reason")
+    value = f"{rmse * 100:.2f} cm" if rmse is not None else f"n/a ({reason})" if reason else "n/a"
+    return f"ATE RMSE {value} over {m['frames_tracked']}/{m['frames']} tracked frames"
 
 
 def _print_summary(out: Path, m: dict) -> None:
@@ -167,8 +182,7 @@ def _print_summary(out: Path, m: dict) -> None:
         + (f"  {m['lossless_views']} of them also lossless: PSNR {m['psnr_lossless']:.2f} dB against the lossless frames "
            f"({m['psnr_jpeg_on_lossless_views']:.2f} dB against the JPEGs, which score {m['psnr_jpeg_vs_lossless']:.2f} dB)\n"
            if m.get("lossless_views") else "")
-        + f"  ATE RMSE {_fmt(m['ate_rmse_m'] and m['ate_rmse_m'] * 100, '.2f')} cm "
-        f"over {m['frames_tracked']}/{m['frames']} tracked frames\n"
+        + f"  {_ate_line(m)}\n"
         f"  {m['iterations']} iterations in {m['mapping_time_s']:.1f} s, {m['gaussians']} Gaussians, "
         f"{m['anchors']} anchors, {m['model_mb']:.2f} MB\n"
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")

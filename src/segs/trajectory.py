@@ -15,6 +15,8 @@ from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 
 ALIGNMENTS = ("se3", "sim3", "none")
+# ATE "reason" of a run whose poses are the ground truth itself
+GROUND_TRUTH_POSES = "ground-truth poses"
 
 
 def _trajectory(timestamps: np.ndarray, c2w: np.ndarray) -> PoseTrajectory3D:
@@ -49,6 +51,33 @@ def write_tum(path: str | Path, timestamps: np.ndarray, c2w: np.ndarray) -> None
     tmp.replace(path)
 
 
+def lost_ranges(lost: list[int]) -> list[list[int]]:
+    """Frame indices -> inclusive runs, sorted: [3, 4, 5, 9] -> [[3, 5], [9, 9]]."""
+    runs: list[list[int]] = []
+    for i in sorted(lost):
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return runs
+
+
+def frontend_ate(frontend, timestamps: np.ndarray, trajectory: dict[int, np.ndarray], gt_c2w: np.ndarray | None,
+                 align: str) -> dict:  # fmt: skip
+    """ATE of a frontend's trajectory (see ate); n/a with the reason GROUND_TRUTH_POSES for a
+    frontend that replays the dataset's poses (slam=known_poses): there is no estimate to score."""
+    if getattr(frontend, "uses_ground_truth_poses", False):
+        return ate_not_measured(align, GROUND_TRUTH_POSES)
+    return ate(timestamps, trajectory, gt_c2w, align=align)
+
+
+def ate_not_measured(align: str, reason: str) -> dict:
+    """The ATE record of a run whose trajectory is not an estimate to score (e.g. the frontend
+    replays ground-truth poses): every figure None, `reason` saying why."""
+    return {"rmse": None, "mean": None, "median": None, "max": None, "pairs": 0, "align": align, "scale": None,
+            "reason": reason}  # fmt: skip
+
+
 def ate(
     timestamps: np.ndarray,
     trajectory: dict[int, np.ndarray],
@@ -68,7 +97,7 @@ def ate(
     """
     if align not in ALIGNMENTS:
         raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
-    empty = {"rmse": None, "mean": None, "median": None, "max": None, "pairs": 0, "align": align, "scale": None}
+    empty = ate_not_measured(align, "")
     if gt_c2w is None:
         return {**empty, "reason": "no ground truth"}
     idx, est = estimated_c2w(trajectory)

@@ -60,6 +60,7 @@ class GaussianMapper(Protocol):
     """The mapper as the bridge, the evaluation and the callbacks see it."""
 
     iteration_ms: list[float]  # wall time of every training step so far (resumed runs included)
+    raster_backend: str | None  # the rasterizer backend of the latest render ("cpu", "cuda", "torch"); None before one
 
     def add_keyframes(self, views: list[TrainingView]) -> None:
         """New training views (their poses are registered here, once)."""

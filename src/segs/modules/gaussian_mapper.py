@@ -46,6 +46,7 @@ class GaussianMapperModule(L.LightningModule):
         self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
         self.iteration_ms: list[float] = []
         self.loss_history: list[float] = []
+        self.raster_backend: str | None = None  # the backend that rendered last (provenance)
 
     # -- the bridge contract (segs.modules.contract.GaussianMapper) -----------------------------
     def add_keyframes(self, views: list[TrainingView]) -> None:
@@ -115,6 +116,7 @@ class GaussianMapperModule(L.LightningModule):
             view.w2c.to(self.device), view.K.to(self.device), view.camera.width, view.camera.height,
             background=bg, near=r.near, far=r.far, backend=r.backend,
         )  # fmt: skip
+        self.raster_backend = out.backend
         return out, decoded
 
     @torch.no_grad()

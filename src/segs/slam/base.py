@@ -69,7 +69,13 @@ class MapUpdate:
 
 
 class Frontend(abc.ABC):
-    """A tracker that turns a frame stream into keyframes, poses and structure."""
+    """A tracker that turns a frame stream into keyframes, poses and structure.
+
+    uses_ground_truth_poses: the poses it reports are the dataset's own (slam=known_poses), so
+    there is no trajectory estimate to score: ATE is n/a, never 0.
+    """
+
+    uses_ground_truth_poses: bool = False
 
     @abc.abstractmethod
     def process(self, frame: Frame) -> FrameResult:

@@ -32,6 +32,8 @@ class KnownPosesFrontend(Frontend):
     pixel with depth, RGB-D / stereo only: dense structure for texture-poor scenes).
     """
 
+    uses_ground_truth_poses = True
+
     def __init__(self, camera: Camera, sensor: str, keyframe_every: int = 10, kf_translation: float = 0.1,
                  kf_rotation_deg: float = 10.0, n_features: int = 1000, fast_threshold: int = 7,
                  depth_range: tuple[float, float] = (0.1, 8.0), max_reproj_px: float = 2.0,

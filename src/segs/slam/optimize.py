@@ -234,8 +234,7 @@ CONVERGED_GAIN = 1e-5  # LM stops after an iteration that lowers the cost by les
 # points with few or no depth readings among their observations, thrown 3-63 m along their rays,
 # and each rejected step costs a whole elimination until lambda has grown enough. 100 is small
 # against a point's diagonal (about 3e5: a few observations at 525 px and 2 m) yet holds such
-# points: same final cost, less time (bench/local_ba.py, docs/performance.md "Local BA, fourth
-# round").
+# points: same final cost, less time (bench/local_ba.py, docs/decisions/004-local-ba-lm-damping.md).
 LAMBDA_INITIAL = 100.0
 
 

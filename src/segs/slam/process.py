@@ -45,17 +45,19 @@ class FrontendProcess(Frontend):
     """A frontend (built by make_frontend() in the child) tracking `sequence` in a child process.
 
     make_frontend: picklable callable -> Frontend (e.g. the slam config's partial with camera and
-    sensor bound); mode: "process" | "live"; rate: live playback speed (1 = real time).
+    sensor bound); mode: "process" | "live"; rate: live playback speed (1 = real time);
+    uses_ground_truth_poses: what the frontend built by make_frontend says of itself.
     Call start() (or poll(), which starts it); finish() waits for the end of the sequence.
     """
 
     def __init__(self, make_frontend: Callable[[], Frontend], sequence: Sequence, mode: str = "process",
-                 rate: float = 1.0):
+                 rate: float = 1.0, uses_ground_truth_poses: bool = False):
         if mode not in ("process", "live"):
             raise ConfigError(f"slam_mode={mode!r}: a frontend process runs in mode process or live")
         if not rate > 0:
             raise ConfigError(f"slam_rate={rate!r} must be > 0")
         self.make_frontend, self.sequence, self.mode, self.rate = make_frontend, sequence, mode, float(rate)
+        self.uses_ground_truth_poses = bool(uses_ground_truth_poses)
         self._proc: subprocess.Popen | None = None
         self._inbox: queue.Queue = queue.Queue()  # messages read from the child, in order
         self._buffer: list[tuple] = []  # messages taken from the inbox, not yet given to poll()
