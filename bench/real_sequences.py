@@ -27,7 +27,8 @@ The runs are deterministic (single-threaded frontend): the accuracy columns repe
 
 --compare OLD.json prints each row's ATE after / before, flags rows worse by more than 10 %, and
 the mean of the ratios (the rule for changing a default: no row worse by more than 10 % and the
-mean ATE better). JSON: outputs/bench/real_sequences/<time>.json with the commit that ran.
+mean ATE better). JSON: outputs/bench/real_sequences/<time>.json with the commit that ran, the
+segs.track run folders in outputs/bench/real_sequences/<time>/.
 """
 from __future__ import annotations
 
@@ -164,12 +165,14 @@ def main() -> None:
     ap.add_argument("--compare", type=Path, default=None, help="an earlier JSON of this script")
     ap.add_argument("--override", nargs="*", default=[],
                     help="config overrides added to every selected row (measuring a candidate default)")
-    ap.add_argument("--out", type=Path, default=None, help="JSON path (default outputs/bench/real_sequences/<time>.json)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="JSON path (default outputs/bench/real_sequences/<time>.json); run folders beside it")
     a = ap.parse_args()
     if a.jobs < 1:
         raise SystemExit("bench/real_sequences.py: --jobs must be at least 1")
     stamp = f"{datetime.datetime.now():%Y%m%d-%H%M%S}"
-    out = ROOT / "outputs" / "bench" / "real_sequences" / stamp
+    # run folders beside the JSON: outputs/bench/real_sequences/<time>/<row>/ or <out without .json>/<row>/
+    out = a.out.with_suffix("") if a.out else ROOT / "outputs" / "bench" / "real_sequences" / stamp
     selected = [r for r in rows(a.shared_data) if a.only is None or any(r["name"].startswith(p) for p in a.only)]
     results: dict[str, dict] = {}
     todo = []
