@@ -5,6 +5,7 @@ long end-to-end runs (marked where they are defined) and every test that reads t
 data in ../shared/data (marked here, by the fixture that finds it). CI runs both."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -48,7 +49,11 @@ def tiny_cfg(tmp_path):
     return make
 
 
-SEVEN_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_0000_0599"
+# the shared real data (non-commercial licences, never in the repository): ../shared/data beside
+# the checkout, or the folder named by SEGS_SHARED_DATA (a worktree elsewhere)
+SHARED_DATA = Path(os.environ.get("SEGS_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+SEVEN_SCENES = SHARED_DATA / "7scenes_redkitchen_0000_0599"
+KITTI = SHARED_DATA / "kitti_odometry_51"
 
 
 @pytest.fixture(scope="session")
@@ -60,8 +65,17 @@ def seven_scenes_root():
     return SEVEN_SCENES
 
 
+@pytest.fixture(scope="session")
+def kitti_root():
+    """The shared 51 real KITTI odometry frames (left camera, ground truth; ../shared/data,
+    CC BY-NC-SA 3.0, not in the repository); tests using it are skipped where it is absent."""
+    if not (KITTI / "image_0").is_dir():
+        pytest.skip(f"KITTI frames not found at {KITTI} (shared data, not in the repository)")
+    return KITTI
+
+
 # fixtures that find real data outside the repository (../shared/data): their tests are slow
-SHARED_DATA_FIXTURES = {"seven_scenes_root"}
+SHARED_DATA_FIXTURES = {"seven_scenes_root", "kitti_root"}
 
 
 def pytest_collection_modifyitems(config, items):

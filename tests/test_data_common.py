@@ -87,7 +87,7 @@ def test_build_sequence():
     tum = build_sequence("tum", TUM_ROOT, "mono", downscale=4)
     assert isinstance(tum, TumSequence) and tum.camera.width == 160
     with pytest.raises(ConfigError):
-        build_sequence("kitti", "x", "mono")
+        build_sequence("nuscenes", "x", "mono")
     with pytest.raises(ConfigError):
         build_sequence("tum", None, "mono")
 

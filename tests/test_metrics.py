@@ -10,7 +10,7 @@ from torchmetrics.functional.image import structural_similarity_index_measure
 
 from segs.errors import ConfigError
 from segs.modules.metrics import Lpips, alexnet_features, make_lpips, psnr, ssim
-from segs.trajectory import ate
+from segs.trajectory import ate, step_scale
 
 
 def test_psnr_is_the_mean_of_per_channel_psnr():
@@ -110,3 +110,23 @@ def test_ate_of_a_rotation_in_place_falls_back_to_origin_alignment():
     r = ate(ts, est, gt, "se3")
     assert r["align"] == "origin"
     assert r["rmse"] == pytest.approx(0.02 / math.sqrt(n), rel=1e-6)
+
+
+def test_step_scale_is_one_without_drift_and_shows_a_scale_jump():
+    """Estimated / true path length over every 5 consecutive steps after the Sim(3) alignment."""
+    n = 31
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, 0, 3] = np.arange(n, dtype=float)  # 1 m steps along x
+    gt[:, 1, 3] = 0.1 * np.sin(np.arange(n))  # not a line (a line leaves the alignment free)
+    ts = np.arange(n) / 10.0
+    copy = {i: np.linalg.inv(np.block([[gt[i][:3, :3], 0.3 * gt[i][:3, 3:]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+            for i in range(n)}  # fmt: skip
+    r = step_scale(ts, copy, gt)
+    assert len(r["ratios"]) == n - 5 and r["min_rel"] == pytest.approx(1.0) and r["max_rel"] == pytest.approx(1.0)
+    # the first 10 steps twice as long as the rest: 6 windows at 2x the 16 that see only the rest
+    c = np.cumsum(np.r_[0.0, np.where(np.arange(n - 1) < 10, 2.0, 1.0)])
+    drift = {i: np.linalg.inv(np.block([[np.eye(3), np.array([[c[i]], [gt[i, 1, 3]], [0.0]])],
+                                        [np.zeros((1, 3)), np.ones((1, 1))]])) for i in range(n)}  # fmt: skip
+    r = step_scale(ts, drift, gt)
+    assert r["max_rel"] == pytest.approx(2.0, rel=0.02) and r["min_rel"] == pytest.approx(1.0, rel=0.02)
+    assert step_scale(ts, {i: copy[i] for i in range(4)}, gt)["reason"].startswith("fewer than 5 steps")

@@ -12,11 +12,11 @@ from segs.trajectory import ate
 
 
 def test_frames_waiting_for_the_initialization_are_tracked_afterwards():
-    """A slow orbit (0.5 degree per frame) needs several frames to reach the initial parallax; the
-    frames in between are reported lost while waiting, then get poses against the initial map
-    (trajectory() only, no keyframes), as accurate as the frames tracked after the start."""
+    """A slow orbit (0.5 degree per frame) needs several frames to reach an initial parallax of 4
+    degrees; the frames in between are reported lost while waiting, then get poses against the
+    initial map (trajectory() only, no keyframes), as accurate as the frames tracked after the start."""
     seq = SyntheticSequence(sensor="mono", n_frames=200, width=320, height=240, trajectory="orbit", speed=0.3)
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = OrbFrontend(seq.camera, "mono", init={"min_parallax_deg": 4.0})  # the default 1.0 starts at once
     n = 24
     run = run_sequence(fe, seq, frames=range(n))
     kf_frames = set(fe.keyframe_frames().values())

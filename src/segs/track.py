@@ -6,7 +6,9 @@ Same configs as `segs.train`: the sequence (`data`) is fed frame by frame to the
 - trajectory.txt: the estimated camera-to-world poses of the tracked frames (TUM format),
 - keyframes.txt: `kf_id frame_index timestamp` of the keyframes still in the map,
 - tracking.json: ATE RMSE (evo; SE(3) for RGB-D / stereo, Sim(3) for monocular, from
-  `sensor.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics.
+  `sensor.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics;
+  with a Sim(3) alignment also the step scale (`segs.trajectory.step_scale`: estimated / true
+  path length over every 5 consecutive steps, its median and min / max relative to the median).
 
 Run folder: outputs/track/runs/<time> (task_name=track unless given).
 """
@@ -27,7 +29,7 @@ from segs.provenance import provenance
 from segs.run_folder import write_json_atomic
 from segs.slam.runtime.process import FrontendProcess
 from segs.slam.runtime.runner import RunResult, run_sequence
-from segs.trajectory import frontend_ate, lost_ranges, write_trajectory
+from segs.trajectory import frontend_ate, lost_ranges, step_scale, write_trajectory
 
 log = logging.getLogger("segs.track")
 # frames read and prepared ahead of tracking, in a child process (slam_mode=interleaved): enough to
@@ -101,6 +103,9 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         "keyframes": len(kfs),
         "ate_rmse_m": ate_result["rmse"],
         "ate": ate_result,
+        "step_scale": (step_scale(sequence.timestamps, traj, sequence.gt_poses)
+                       if align == "sim3" and sequence.gt_poses is not None
+                       and not getattr(frontend, "uses_ground_truth_poses", False) else None),
         # process(): tracking and, single-threaded, local mapping and loop closing
         "tracking_fps": processed / result.process_s if result.process_s > 0 else None,
         "process_s": result.process_s,

@@ -130,3 +130,48 @@ def ate(
         "align": used,
         "scale": float(scale),
     }
+
+
+def step_scale(
+    timestamps: np.ndarray,
+    trajectory: dict[int, np.ndarray],
+    gt_c2w: np.ndarray,
+    window: int = 5,
+    max_diff: float = 0.1,
+) -> dict:
+    """How the scale of an estimated trajectory holds along a sequence (monocular drift).
+
+    After the Sim(3) alignment of the whole trajectory to the ground truth (evo, as `ate`), the
+    ratio of estimated to true path length over every `window` consecutive steps of the tracked
+    frames (sliding by one step): 1 everywhere for a trajectory without scale drift.
+    timestamps [N], trajectory (frame index -> w2c [4,4]) and gt_c2w [N,4,4] as in `ate`.
+    Returns {"ratios": [W] list, "median", "min_rel", "max_rel" (min / max over median), "window"},
+    or {"ratios": [], ..., "reason"} when fewer than `window` steps have ground truth.
+    """
+    empty = {"ratios": [], "median": None, "min_rel": None, "max_rel": None, "window": window}
+    idx, est = estimated_c2w(trajectory)
+    ok = np.isfinite(gt_c2w.reshape(len(gt_c2w), -1)).all(axis=1)
+    gt_idx = np.nonzero(ok)[0]
+    if len(idx) < window + 1 or len(gt_idx) < window + 1:
+        return {**empty, "reason": f"fewer than {window} steps with ground truth"}
+    ref = _trajectory(timestamps[gt_idx], gt_c2w[gt_idx])
+    traj = _trajectory(timestamps[idx], est)
+    ref, traj = sync.associate_trajectories(ref, traj, max_diff=max_diff)
+    if ref.num_poses < window + 1:
+        return {**empty, "reason": f"fewer than {window} associated steps"}
+    traj = copy.deepcopy(traj)
+    try:
+        traj.align(ref, correct_scale=True)
+    except GeometryException:  # camera centres on a point or a line: no scale to compare
+        return {**empty, "reason": "degenerate alignment"}
+    d_est = np.linalg.norm(np.diff(traj.positions_xyz, axis=0), axis=1)
+    d_ref = np.linalg.norm(np.diff(ref.positions_xyz, axis=0), axis=1)
+    kernel = np.ones(window)
+    true_len = np.convolve(d_ref, kernel, "valid")
+    ratios = np.convolve(d_est, kernel, "valid") / np.where(true_len > 0, true_len, np.nan)
+    ratios = ratios[np.isfinite(ratios)]
+    if not len(ratios):
+        return {**empty, "reason": "the ground truth does not move"}
+    med = float(np.median(ratios))
+    return {"ratios": ratios.tolist(), "median": med, "min_rel": float(ratios.min() / med),
+            "max_rel": float(ratios.max() / med), "window": window}

@@ -2,6 +2,7 @@
 
 Readers (each also a Hydra ``_target_``): :class:`segs.data.tum.TumSequence`,
 :class:`segs.data.replica.ReplicaSequence`, :class:`segs.data.euroc.EurocSequence`, :class:`segs.data.seven_scenes.SevenScenesSequence`,
+:class:`segs.data.kitti.KittiSequence`,
 :class:`segs.data.synthetic.SyntheticSequence`; :class:`segs.data.base.Downscaled` wraps any of
 them; :func:`segs.data.factory.build_sequence` picks one by name. Names are imported lazily so
 that ``import segs.data.frame`` stays cheap.
@@ -20,6 +21,7 @@ _EXPORTS = {
     "ReplicaSequence": "segs.data.replica",
     "EurocSequence": "segs.data.euroc",
     "SevenScenesSequence": "segs.data.seven_scenes",
+    "KittiSequence": "segs.data.kitti",
     "SyntheticSequence": "segs.data.synthetic",
     "build_sequence": "segs.data.factory",
 }

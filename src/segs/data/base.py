@@ -119,6 +119,16 @@ def normalize_index(index: int, n: int) -> int:
     return int(index) % n
 
 
+def frame_range(frames, numbers_: np.ndarray) -> np.ndarray:
+    """Mask of frame numbers inside data.frames = [start, stop) (None: all)."""
+    if frames is None:
+        return np.ones(len(numbers_), bool)
+    rng = numbers(frames, (2,), "data.frames")
+    if rng[0] < 0 or rng[1] <= rng[0]:
+        raise ConfigError(f"data.frames must be [start, stop) with 0 <= start < stop, got {list(frames)}")
+    return (numbers_ >= rng[0]) & (numbers_ < rng[1])
+
+
 class Downscaled(Sequence):
     """Any sequence with images, depth and intrinsics reduced by `factor` (>= 1; 1 = identity).
 

@@ -12,12 +12,13 @@ KINDS = {
     "replica": "segs.data.replica:ReplicaSequence",
     "euroc": "segs.data.euroc:EurocSequence",
     "seven_scenes": "segs.data.seven_scenes:SevenScenesSequence",
+    "kitti": "segs.data.kitti:KittiSequence",
     "synthetic": "segs.data.synthetic:SyntheticSequence",
 }
 
 
 def build_sequence(kind: str, root: str | Path | None = None, sensor: str = "rgbd", **kwargs) -> Sequence:
-    """A sequence of dataset `kind` ("tum", "replica", "euroc", "seven_scenes", "synthetic") in sensor mode.
+    """A sequence of dataset `kind` ("tum", "replica", "euroc", "seven_scenes", "kitti", "synthetic") in sensor mode.
 
     root is the dataset folder (unused for "synthetic"); kwargs go to the reader's constructor.
     downscale=k is accepted for every kind (SyntheticSequence is wrapped in :class:`Downscaled`).

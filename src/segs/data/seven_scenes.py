@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, gt_pose, numbers, pinhole
+from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, frame_range, gt_pose, numbers, pinhole
 from segs.data.files import image_shape, read_depth, read_numeric, read_rgb, require_dir
 from segs.data.frame import Camera, Frame
 from segs.data.poses import check_rigid
@@ -117,7 +117,7 @@ class SevenScenesSequence(ReaderSequence):
                              f"{self.root.resolve().name}/{self.folder.name}")
         color = list_color(self.folder)
         numbers_ = np.array(sorted(color), np.int64)
-        numbers_ = numbers_[_frame_range(frames, numbers_)]
+        numbers_ = numbers_[frame_range(frames, numbers_)]
         if len(numbers_) == 0:
             raise DataError(f"{self.folder}: no frame in data.frames={list(frames)}")
         self.frame_numbers = numbers_
@@ -183,12 +183,3 @@ class SevenScenesSequence(ReaderSequence):
             rgb = cv2.resize(rgb, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
         return rgb
 
-
-def _frame_range(frames, numbers_: np.ndarray) -> np.ndarray:
-    """Mask of frame numbers inside data.frames = [start, stop) (None: all)."""
-    if frames is None:
-        return np.ones(len(numbers_), bool)
-    rng = numbers(frames, (2,), "data.frames")
-    if rng[0] < 0 or rng[1] <= rng[0]:
-        raise ConfigError(f"data.frames must be [start, stop) with 0 <= start < stop, got {list(frames)}")
-    return (numbers_ >= rng[0]) & (numbers_ < rng[1])

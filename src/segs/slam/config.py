@@ -101,7 +101,8 @@ class TrackingConfig:
 @dataclass
 class InitConfig:
     min_matches: int = 100
-    min_parallax_deg: float = 4.0  # 50th-largest parallax (ORB-SLAM: 1.0; ours, see orb.yaml)
+    min_parallax_deg: float = 1.0  # 50th-largest parallax of the counted matches (ORB-SLAM: 1.0)
+    fallback_min_parallax_deg: float = 4.0  # idem, the fundamental matrix after a failed homography (ours)
     min_triangulated: int = 50
     max_frames: int = 60  # frames a reference may wait for its partner before it is replaced
     homography_ratio: float = 0.40  # R_H = S_H / (S_H + S_F) above this -> homography

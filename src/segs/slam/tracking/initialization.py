@@ -4,10 +4,12 @@ RGB-D / stereo: one frame with enough keypoints with depth (back-projected; see 
 no frame has enough, the two-view start below scaled to metres by the depth its points have.
 Monocular: two views. A reference frame waits for a partner; their ORB matches feed a homography
 and an essential matrix (OpenCV MAGSAC++); ORB-SLAM's symmetric transfer scores choose the model
-(R_H = S_H / (S_H + S_F) > 0.40 -> homography), the model's motion hypotheses are triangulated and
-the one with clearly most points in front of both cameras, small reprojection error and enough
-parallax wins. The scale is arbitrary (normalised later to a median depth of 1). The frames fed
-while the reference waited are kept (`waiting`): the tracker poses them once the map exists.
+(R_H = S_H / (S_H + S_F) > 0.40 -> homography; a homography without a reconstruction falls back to
+the fundamental matrix at a larger parallax), the model's motion hypotheses are triangulated and
+the one that clearly explains most matches (in front of both cameras, or with nearly parallel
+rays, small reprojection error) with enough parallax wins. The scale is arbitrary (normalised
+later to a median depth of 1). The frames fed while the reference waited are kept (`waiting`):
+the tracker poses them once the map exists.
 """
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ from segs.slam.estimation.matching import match_descriptors, rotation_consistent
 
 TH_H = 5.991  # chi2 2 dof
 TH_F = 3.841  # chi2 1 dof (point-to-line)
+# rays closer than this cosine (0.36 degrees) are "parallel": not triangulated (ORB-SLAM's 0.99998)
+MIN_COS_PARALLAX = 0.99998
 
 
 @dataclass
@@ -98,16 +102,20 @@ class MonoInitializer:
             return None
         rh = sh / (sh + sf)
         models = []
-        if H is not None:
-            models.append((self._hyps_h, H, mh))
+        chose_h = H is not None and rh > self.cfg.homography_ratio
+        if chose_h:
+            models.append((self._hyps_h, H, mh, False, self.cfg.min_parallax_deg))
         if F is not None:
-            models.append((self._hyps_f, F, mf))
-        if rh <= self.cfg.homography_ratio:
-            models.reverse()
-        # ORB-SLAM's choice first; the other model as a fallback (rotation-dominant motion over a
-        # non-planar scene often scores the homography best without it yielding a reconstruction)
-        for hyps, M, mask in models:
-            res = self._select(hyps(M), x1, x2, sig2, mask)
+            models.append((self._hyps_f, F, mf, True,
+                           self.cfg.fallback_min_parallax_deg if chose_h else self.cfg.min_parallax_deg))
+        # ORB-SLAM's choice; after a homography that yields nothing, the fundamental matrix at
+        # init.fallback_min_parallax_deg (ours: rotation-dominant motion over a non-planar scene
+        # often scores the homography best without it yielding a reconstruction, and a homography
+        # that explains the matches as well as F says the translation is barely observed). Never
+        # the homography after a rejected fundamental matrix: its decomposition fits the small
+        # flows of far points with any translation (KITTI frames 0 / 1: 80 degrees off)
+        for hyps, M, mask, by_triangulated, min_parallax in models:
+            res = self._select(hyps(M), x1, x2, sig2, mask, by_triangulated, min_parallax)
             if res is not None:
                 return res
         return None
@@ -149,7 +157,17 @@ class MonoInitializer:
         t = t.ravel()
         return [(R1, t), (R1, -t), (R2, t), (R2, -t)]
 
-    def _select(self, hyps, x1, x2, sig2, inl):
+    def _select(self, hyps, x1, x2, sig2, inl, by_triangulated: bool, min_parallax: float):
+        """The motion hypothesis (R, t) that clearly explains most inlier matches -> (w2c [4,4],
+        points [N,3], triangulated mask [N]) or None (ORB-SLAM's CheckRT / ReconstructF rules).
+
+        A match counts for a hypothesis when both its reprojection errors are under 4 sigma^2
+        and, if its rays part by more than MIN_COS_PARALLAX, it lies in front of both cameras;
+        matches whose rays are nearly parallel (far points, the focus of expansion of a forward
+        motion) count but are not triangulated. The best must count at least 0.9 of the inliers
+        and triangulate init.min_triangulated; no other may come within 0.7 of it (of its count,
+        or with by_triangulated, of its triangulated matches); the 50th-largest parallax of the
+        counted matches must reach min_parallax (degrees)."""
         K = self.K
         P1 = K @ np.c_[np.eye(3), np.zeros(3)]
         results = []
@@ -168,23 +186,32 @@ class MonoInitializer:
             r1 = X / np.linalg.norm(X, axis=1, keepdims=True).clip(1e-12)
             r2 = (X - c2) / np.linalg.norm(X - c2, axis=1, keepdims=True).clip(1e-12)
             cosp = (r1 * r2).sum(1)
-            good = inl & np.isfinite(X).all(1) & (z1 > 0) & (z2 > 0) & (e1 < 4 * sig2) & (e2 < 4 * sig2) \
-                & (cosp < 0.99998)
-            par = np.degrees(np.arccos(np.clip(np.sort(cosp[good])[min(50, good.sum() - 1)], -1, 1))) \
-                if good.sum() else 0.0
+            parallel = cosp >= MIN_COS_PARALLAX
+            counted = inl & np.isfinite(X).all(1) & (e1 < 4 * sig2) & (e2 < 4 * sig2) \
+                & (parallel | ((z1 > 0) & (z2 > 0)))
+            good = counted & ~parallel
+            par = np.degrees(np.arccos(np.clip(np.sort(cosp[counted])[min(50, counted.sum() - 1)], -1, 1))) \
+                if counted.sum() else 0.0
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R, t
-            results.append((int(good.sum()), par, T, X, good))
+            results.append((int(counted.sum()), int(good.sum()), par, T, X, good))
         if not results:
             return None
-        results.sort(key=lambda r: -r[0])
+        results.sort(key=lambda r: (-r[0], -r[1]))
         best = results[0]
         n_inl = int(inl.sum())
         min_good = max(int(0.9 * n_inl), self.cfg.min_triangulated)
-        similar = sum(1 for r in results if r[0] > 0.7 * best[0])
-        if best[0] < min_good or similar > 1 or best[1] < self.cfg.min_parallax_deg:
+        # ambiguity: among the essential matrix's four motions the same rotation with t and -t
+        # reproject every match alike, and only cheirality tells them apart, which parallel rays
+        # do not test: compared on the triangulated matches (ORB-SLAM compares the counts, and a
+        # forward motion seeing mostly far points is then always ambiguous). A homography's two
+        # plane decompositions both explain the matches: compared on the counts (ORB-SLAM's)
+        key = 1 if by_triangulated else 0
+        similar = sum(1 for r in results if r[key] > 0.7 * best[key])
+        if best[0] < min_good or similar > 1 or best[2] < min_parallax \
+                or best[1] < self.cfg.min_triangulated:
             return None
-        return best[2], best[3], best[4]
+        return best[3], best[4], best[5]
 
     def _proj(self, X):
         z = np.where(np.abs(X[:, 2]) < 1e-12, 1e-12, X[:, 2])
