@@ -130,7 +130,8 @@ def make_sequence(data_cfg: DictConfig):
 def validate(cfg: DictConfig, mapper: bool = True) -> None:
     """Raise ConfigError naming the first bad key.
 
-    Checks, before anything runs: every number of the config is finite, the typed mapper configs
+    Checks, before anything runs: every number of the config is finite, the viewer group
+    (segs.viewer.config: keys, ranges, viser installed when on), the typed mapper configs
     (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
     the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
     mapper=False (segs.track, which builds no mapper) skips the typed mapper configs and the
@@ -146,6 +147,10 @@ def validate(cfg: DictConfig, mapper: bool = True) -> None:
             continue
         if not ok(value):
             raise ConfigError(f"config key {key}={value!r} is out of range: expected {expected}")
+    if OmegaConf.select(cfg, "viewer", default=None) is not None:
+        from segs.viewer.config import viewer_config
+
+        viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True))
     if not mapper:
         return
     from segs.modules.config import mapping_config, model_config, raster_config

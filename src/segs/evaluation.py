@@ -20,6 +20,7 @@ import torch
 from tqdm import tqdm
 
 from segs.callbacks.memory import peak_rss_mb
+from segs.map_points import FILE_NAME as MAP_POINTS
 from segs.modules.contract import GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.trajectory import ate, estimated_c2w, write_tum
@@ -157,6 +158,7 @@ def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg, out: Path, timi
     ate_result = ate(sequence.timestamps, trajectory, sequence.gt_poses, align=eval_cfg.get("ate_align", "se3"))
     if eval_cfg.get("write_ply", True):
         module.export_ply(out / "point_cloud.ply")
+    bridge.map_points.write(out / MAP_POINTS)
     summary = run_summary(module, sequence, bridge, timing)
     metrics = {
         **images,
@@ -177,6 +179,7 @@ def write_not_evaluated(module: GaussianMapper, sequence, bridge, out: Path, tim
     """metrics.json of a run trained with eval.enabled=false (status "not_evaluated"): the run's
     numbers without any test-view or trajectory metric."""
     out.mkdir(parents=True, exist_ok=True)
+    bridge.map_points.write(out / MAP_POINTS)
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
     metrics = {**none, "test_views": 0, **run_summary(module, sequence, bridge, timing), **(notes or {}), "status": "not_evaluated",
                "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed"}  # fmt: skip
