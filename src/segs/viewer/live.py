@@ -89,6 +89,10 @@ class LiveViewer(L.Callback):
         if self.snapshot_ms:
             log.info("viewer: %d snapshots, median %.1f ms on the training thread", len(self.snapshot_ms), np.median(self.snapshot_ms))
 
+    def teardown(self, trainer, pl_module, stage: str) -> None:
+        self.server.close()
+        print(f"viewer: closed; python -m segs.view {trainer.default_root_dir} shows the run", flush=True)
+
     # -- one snapshot ---------------------------------------------------------------------------
     def refresh(self, trainer, module: GaussianMapper) -> None:
         """Take a snapshot now and hand it to the server."""

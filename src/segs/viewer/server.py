@@ -75,7 +75,9 @@ class ViewerServer:
         self._pending: Snapshot | None = None
         self._cond = threading.Condition()
         self._closed = False
+        self._drawing = False
         self._frustums: dict[int, object] = {}
+        self.nodes: dict[str, object] = {}  # scene node name -> viser handle, of what is drawn now
         self._splats_id = None
         self._framed = False
         self._keyframe_labels: dict[str, int] = {}
@@ -105,10 +107,10 @@ class ViewerServer:
             self._pending = snapshot
             self._cond.notify()
 
-    def wait_drawn(self, count: int, timeout: float) -> bool:
-        """Wait until `count` snapshots have been drawn; False on timeout."""
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until every snapshot submitted so far is drawn; False on timeout."""
         with self._cond:
-            return self._cond.wait_for(lambda: self.drawn >= count, timeout)
+            return self._cond.wait_for(lambda: self._pending is None and not self._drawing, timeout)
 
     def serve_selection(self, provider: Provider) -> bool:
         """Answer the newest keyframe selected in a browser, if any, with provider(kf_id) shown
@@ -156,13 +158,13 @@ class ViewerServer:
                 self._cond.wait_for(lambda: self._pending is not None or self._closed)
                 if self._closed:
                     return
-                snapshot, self._pending = self._pending, None
+                snapshot, self._pending, self._drawing = self._pending, None, True
             try:
                 self._draw(snapshot)
             except Exception:  # noqa: BLE001 - a drawing failure must not end the run it shows
                 log.exception("viewer: drawing a snapshot failed")
             with self._cond:
-                self.drawn += 1
+                self.drawn, self._drawing = self.drawn + 1, False
                 self._cond.notify_all()
 
     def _draw(self, s: Snapshot) -> None:
@@ -173,27 +175,25 @@ class ViewerServer:
         extent = frame[1] if frame is not None else 1.0
         if s.splats is not None and s.splats_id != self._splats_id:
             g = s.splats
-            scene.add_gaussian_splats("/map/gaussians", centers=g.means, covariances=g.covariances(), rgbs=g.colors.clip(0, 1),
-                                      opacities=g.opacities.clip(0, 1)[:, None])  # fmt: skip
+            self.nodes["/map/gaussians"] = scene.add_gaussian_splats(
+                "/map/gaussians", centers=g.means, covariances=g.covariances(), rgbs=g.colors.clip(0, 1),
+                opacities=g.opacities.clip(0, 1)[:, None])  # fmt: skip
             self._splats_id = s.splats_id
         if s.points is not None and len(s.points):
             colors = (np.clip(s.point_colors, 0, 1) * 255).astype(np.uint8)
-            scene.add_point_cloud("/map/points", s.points.astype(np.float32), colors, point_size=0.004 * extent, point_shape="circle")
+            self.nodes["/map/points"] = scene.add_point_cloud("/map/points", s.points.astype(np.float32), colors,
+                                                              point_size=0.004 * extent, point_shape="circle")  # fmt: skip
         if s.trajectories is not None:
             self._draw_trajectories(s, extent)
         self._draw_keyframes(s.keyframes, extent)
         self._panel.content = _markdown(s.panel)
 
     def _draw_trajectories(self, s: Snapshot, extent: float) -> None:
-        scene, width = self.server.scene, 0.003 * extent
-        est = s.trajectories.estimated_centres()
-        if len(est) >= 2:
-            scene.add_line_segments("/trajectory/estimated", np.stack([est[:-1], est[1:]], 1).astype(np.float32), EST_COLOR,
-                                    thickness=width)  # fmt: skip
-        gt = s.trajectories.ground_truth_centres()
-        if gt is not None and len(gt) >= 2:
-            scene.add_line_segments("/trajectory/ground_truth", np.stack([gt[:-1], gt[1:]], 1).astype(np.float32), GT_COLOR,
-                                    thickness=width)  # fmt: skip
+        for name, centres, color in (("/trajectory/estimated", s.trajectories.estimated_centres(), EST_COLOR),
+                                     ("/trajectory/ground_truth", s.trajectories.ground_truth_centres(), GT_COLOR)):  # fmt: skip
+            if centres is not None and len(centres) >= 2:
+                segments = np.stack([centres[:-1], centres[1:]], 1).astype(np.float32)
+                self.nodes[name] = self.server.scene.add_line_segments(name, segments, color, thickness=0.003 * extent)
 
     def _draw_keyframes(self, keyframes: list[KeyframeNode], extent: float) -> None:
         tf = self._viser.transforms
@@ -212,9 +212,11 @@ class ViewerServer:
                 scale=0.06 * extent, thickness=0.002 * extent, color=KF_COLOR, image=kf.thumbnail, format="jpeg",
                 wxyz=wxyz, position=pos)  # fmt: skip
             handle.on_click(lambda _, k=kf.kf_id: self._select(k))
-            self._frustums[kf.kf_id] = handle
+            self._frustums[kf.kf_id] = self.nodes[handle.name] = handle
         for kf_id in set(self._frustums) - seen:  # keyframes culled by the frontend
-            self._frustums.pop(kf_id).remove()
+            handle = self._frustums.pop(kf_id)
+            self.nodes.pop(handle.name, None)
+            handle.remove()
         labels = {f"kf {kf.kf_id} (frame {kf.frame_index})": kf.kf_id for kf in sorted(keyframes, key=lambda k: k.kf_id)}
         if labels.keys() != self._keyframe_labels.keys():
             self._keyframe_labels = labels
