@@ -3,17 +3,21 @@
     python bench/viewer_overhead.py [--steps 300] [--repeats 3] [--refresh 5] [--browser-nice 19] [KEY=VALUE ...]
 
 Runs `python -m segs.train` (default: the bundled sample, eval off) alternately without the
-viewer (viewer=off) and with it (viewer=on) plus a headless Chromium (Debian's `chromium`) that
-opens the page as soon as the server is up and stays connected until the run ends; repeats the
-pair --repeats times (off, on, off, on, ...). Compares the fit time (metrics.json
-mapping_time_s: training steps, tracking beside them, the viewer's snapshots) by the median of
-each side. Prints one line `viewer overhead: ...` and writes the figures to --json.
+viewer (viewer=off) and with it (viewer=on), repeated --repeats times (off, on, off, on, ...);
+compares the fit time (metrics.json mapping_time_s: training steps, tracking beside them, the
+viewer's snapshots) by the median of each side. Prints one line `viewer overhead: ...` and writes
+the figures to --json.
 
-The browser runs at nice --browser-nice (default 19): the 3D page renders continuously, in
-software without a GPU (about one core here), which in use happens on the viewer's own machine
-(the page is opened over the network / SSH), not on the training machine's cores; at nice 19 it
-takes only cores the training leaves idle while it still receives every snapshot. --browser-nice 0
-measures a browser competing with training for this machine's cores.
+Both sides have a headless Chromium (Debian's `chromium`) open at nice --browser-nice (default 19):
+with viewer=on it opens the run's page as soon as the server is up and stays connected until the
+run ends; with viewer=off it shows a reference page (a viser scene of 40,000 splats served by this
+script). The 3D page renders continuously, in software without a GPU (about one core here); in use
+that happens on the machine the page is opened from (over the network / SSH), not on the training
+machine's cores, and at nice 19 it takes only the cores training leaves idle. It is there on both
+sides because a busy low-priority process alone changes the training time on this host (it keeps
+the virtual CPUs from idling between OpenMP waits: docs/performance.md "Web viewer"), so the
+difference is the viewer's: snapshots on the training thread, the server's threads, the sends.
+--browser-nice 0 measures browsers competing with training for the cores.
 """
 from __future__ import annotations
 
@@ -27,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -47,14 +52,35 @@ def wait_port(port: int, proc: subprocess.Popen, timeout: float = 300.0) -> bool
     """Whether the server on port accepts connections before the run ends / the timeout."""
     end = time.monotonic() + timeout
     while time.monotonic() < end and proc.poll() is None:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return True
-        time.sleep(0.2)
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).close()
+            return True
+        except OSError:
+            time.sleep(0.2)
     return False
 
 
-def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extra: list[str]) -> dict:
+def reference_page() -> str:
+    """URL of a viser scene of 40,000 splats served by this process (the viewer=off side's page)."""
+    import viser
+
+    n = 40_000
+    centres = np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    server.scene.add_gaussian_splats("/reference", centers=centres, covariances=np.tile(np.eye(3, dtype=np.float32) * 0.003, (n, 1, 1)),
+                                     rgbs=np.clip(centres * 0.3 + 0.5, 0, 1), opacities=np.full((n, 1), 0.8, np.float32))  # fmt: skip
+    return f"http://127.0.0.1:{server.get_port()}"
+
+
+def open_browser(url: str, nice: int) -> subprocess.Popen:
+    profile = tempfile.mkdtemp(prefix="segs-bench-chromium-")
+    return subprocess.Popen(
+        ["nice", "-n", str(nice), CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={profile}", url],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+
+
+def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extra: list[str], reference: str) -> dict:
     """One training run; returns its fit / wall seconds and the viewer's snapshot log line."""
     port = free_port()
     cmd = [sys.executable, "-m", "segs.train", f"trainer.max_steps={steps}", *BASE, f"hydra.run.dir={out}", *extra]
@@ -65,12 +91,10 @@ def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extr
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     browser = None
     try:
-        if viewer and wait_port(port, proc):
-            profile = tempfile.mkdtemp(prefix="segs-bench-chromium-")
-            browser = subprocess.Popen(
-                ["nice", "-n", str(nice), CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={profile}",
-                 f"http://127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        if not viewer:
+            browser = open_browser(reference, nice)
+        elif wait_port(port, proc):
+            browser = open_browser(f"http://127.0.0.1:{port}", nice)
         _, err = proc.communicate()
     finally:
         if browser is not None:
@@ -100,12 +124,13 @@ def main() -> None:
     if not Path(CHROMIUM).is_file():
         raise SystemExit(f"viewer_overhead: {CHROMIUM} not found (Debian: apt-get install chromium)")
     tmp = Path(tempfile.mkdtemp(prefix="segs-viewer-overhead-"))
+    reference = reference_page()
     runs = []
     try:
         for i in range(args.repeats):
             for viewer in (False, True):
                 runs.append(one_run(tmp / f"{i}_{'on' if viewer else 'off'}", args.steps, viewer, args.refresh, args.browser_nice,
-                                    args.overrides))  # fmt: skip
+                                    args.overrides, reference))  # fmt: skip
                 print(f"  run {len(runs)}: viewer {'on ' if viewer else 'off'} fit {runs[-1]['fit_s']:.1f} s, "
                       f"{runs[-1]['snapshots']} snapshots", file=sys.stderr, flush=True)
     finally:
@@ -113,14 +138,20 @@ def main() -> None:
     off = float(np.median([r["fit_s"] for r in runs if not r["viewer"]]))
     on = float(np.median([r["fit_s"] for r in runs if r["viewer"]]))
     snap = [r["snapshot_ms_median"] for r in runs if r["viewer"]]
+    # the snapshots' own time on the training thread, a share of the fit time (median over the runs)
+    share = float(np.median([r["snapshots"] * r["snapshot_ms_median"] / 1000 / r["fit_s"] for r in runs if r["viewer"]]))
     result = {"command": " ".join(sys.argv), "steps": args.steps, "repeats": args.repeats, "refresh_s": args.refresh,
               "browser_nice": args.browser_nice, "fit_s_median_off": off, "fit_s_median_on": on, "ratio": on / off,
-              "snapshot_ms_median": float(np.median(snap)), "host": f"{socket.gethostname()}, {os.cpu_count()} CPUs",
+              "snapshot_ms_median": float(np.median(snap)), "snapshot_share_of_fit": share,
+              "host": f"{socket.gethostname()}, {os.cpu_count()} CPUs",
               "runs": runs}  # fmt: skip
     Path(args.json).write_text(json.dumps(result, indent=2))
-    print(f"viewer overhead: fit {on:.1f} s with the viewer and a browser (nice {args.browser_nice}) vs {off:.1f} s without, "
+    sys.stdout.flush()
+    print(f"viewer overhead: fit {on:.1f} s with the viewer and a browser on its page vs {off:.1f} s without (a browser on a "
+          f"reference page; both nice {args.browser_nice}), "
           f"ratio {on / off:.3f} ({100 * (on / off - 1):+.1f} %; median of {args.repeats} interleaved runs of {args.steps} steps, "
-          f"snapshot {result['snapshot_ms_median']:.0f} ms on the training thread every {args.refresh:g} s) -> {args.json}")
+          f"snapshots: {result['snapshot_ms_median']:.0f} ms on the training thread every {args.refresh:g} s, {100 * share:.1f} % "
+          f"of the fit) -> {args.json}")
 
 
 if __name__ == "__main__":

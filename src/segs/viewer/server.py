@@ -69,6 +69,9 @@ class ViewerServer:
         import viser  # the `viewer` extra, imported only when a server starts
 
         logging.getLogger("websockets").setLevel(logging.WARNING)  # one line per connection otherwise
+        quiet = logging.getLogger("websockets.server")
+        if not any(isinstance(f, _HandshakeNoise) for f in quiet.filters):
+            quiet.addFilter(_HandshakeNoise())
         self._viser = viser
         self.selections: queue.Queue[int] = queue.Queue()
         self.drawn = 0  # snapshots drawn so far (tests wait on it)
@@ -233,6 +236,14 @@ class ViewerServer:
         cam.position, cam.look_at, cam.up = tuple(position), tuple(centre), tuple(up)
         for client in self.server.get_clients().values():
             client.camera.position, client.camera.look_at, client.camera.up_direction = tuple(position), tuple(centre), tuple(up)
+
+
+class _HandshakeNoise(logging.Filter):
+    """Drops websockets' traceback for a connection closed before its request (a browser's
+    speculative preconnect, a port probe): nothing went wrong on the server."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != "opening handshake failed"
 
 
 def _markdown(panel: dict[str, str]) -> str:
