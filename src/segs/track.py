@@ -156,6 +156,10 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         + (f", {metrics['frames_dropped_live']} frames dropped (live)" if metrics["slam_mode"] == "live" else "") + "\n"
         "  trajectory.txt (TUM), keyframes.txt, map_points.ply, tracking.json"
     )
+    if viewer is not None:
+        from segs.viewer.live import close
+
+        close(viewer.server, out)
     return metrics
 
 

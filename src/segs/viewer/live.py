@@ -39,6 +39,13 @@ def start_server(cfg: ViewerConfig, title: str) -> ViewerServer:
     return server
 
 
+def close(server: ViewerServer, run_dir) -> None:
+    """Stop serving once the last snapshot is drawn; say how to see the run again."""
+    server.wait_idle(timeout=30)
+    server.close()
+    print(f"viewer: closed; python -m segs.view {run_dir} shows the run", flush=True)
+
+
 def trajectories(sequence: Sequence, trajectory: dict[int, np.ndarray], align: str) -> Trajectories:
     """The frontend's trajectory (frame index -> w2c) and the sequence's ground truth."""
     idx, c2w = estimated_c2w(trajectory)
@@ -90,8 +97,7 @@ class LiveViewer(L.Callback):
             log.info("viewer: %d snapshots, median %.1f ms on the training thread", len(self.snapshot_ms), np.median(self.snapshot_ms))
 
     def teardown(self, trainer, pl_module, stage: str) -> None:
-        self.server.close()
-        print(f"viewer: closed; python -m segs.view {trainer.default_root_dir} shows the run", flush=True)
+        close(self.server, trainer.default_root_dir)
 
     # -- one snapshot ---------------------------------------------------------------------------
     def refresh(self, trainer, module: GaussianMapper) -> None:

@@ -111,11 +111,27 @@ def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
     return (m @ m.transpose(0, 2, 1)).astype(np.float32)
 
 
-def scene_frame(snapshot: Snapshot) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """(centre [3], extent, up [3]) of what the snapshot shows, or None when it shows nothing:
+@dataclass
+class Framing:
+    """Where the browsers' camera starts: position [3] looking at look_at [3] with up [3]; the
+    map's centre [3] and extent (the scale of the frustums, lines and points)."""
+
+    centre: np.ndarray
+    extent: float
+    up: np.ndarray
+    position: np.ndarray
+    look_at: np.ndarray
+
+
+def framing(snapshot: Snapshot, back: float = 0.6, rise: float = 0.3) -> Framing | None:
+    """The snapshot's framing, or None when it shows nothing.
+
     centre = median of the map (points or Gaussians, else camera centres), extent = the 90th
-    percentile of their distance to it, up = the cameras' mean up direction (-y of OpenCV)."""
-    cams = [np.linalg.inv(k.w2c) for k in snapshot.keyframes]
+    percentile of their distance to it, up = the cameras' mean up direction (-y of OpenCV). The
+    camera starts behind the first keyframe (back * extent behind it, rise * extent above),
+    looking where it looked: the run's first view with its frustum in sight; without cameras,
+    from above and aside the centre."""
+    cams = [np.linalg.inv(k.w2c) for k in sorted(snapshot.keyframes, key=lambda k: k.kf_id)]
     if not cams and snapshot.trajectories is not None and len(snapshot.trajectories.est_c2w):
         cams = list(snapshot.trajectories.est_c2w)
     parts = [p for p in (snapshot.points, snapshot.splats.means if snapshot.splats is not None else None) if p is not None and len(p)]
@@ -125,8 +141,12 @@ def scene_frame(snapshot: Snapshot) -> tuple[np.ndarray, float, np.ndarray] | No
     centre = np.median(where, axis=0)
     extent = float(np.percentile(np.linalg.norm(where - centre, axis=1), 90)) or 1.0
     up = -np.mean([c[:3, 1] for c in cams], axis=0) if cams else np.array([0.0, 0.0, 1.0])
-    norm = np.linalg.norm(up)
-    return centre, extent, (up / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0]))
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else np.array([0.0, 0.0, 1.0])
+    if cams:
+        forward, origin = cams[0][:3, 2], cams[0][:3, 3]
+        return Framing(centre, extent, up, origin - back * extent * forward + rise * extent * up, origin + extent * forward)
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return Framing(centre, extent, up, centre + extent * (1.6 * up + 1.6 * side / np.linalg.norm(side)), centre)
 
 
 def thumbnail(image: np.ndarray, width: int = 96) -> np.ndarray:

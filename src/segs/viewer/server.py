@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from segs.errors import ConfigError
-from segs.viewer.scene import KeyframeNode, Snapshot, scene_frame
+from segs.viewer.scene import Framing, KeyframeNode, Snapshot, framing
 
 log = logging.getLogger(__name__)
 
@@ -172,10 +172,10 @@ class ViewerServer:
 
     def _draw(self, s: Snapshot) -> None:
         scene = self.server.scene
-        frame = scene_frame(s)
+        frame = framing(s)
         if frame is not None and not self._framed:
-            self._frame_camera(*frame)
-        extent = frame[1] if frame is not None else 1.0
+            self._frame_camera(frame)
+        extent = frame.extent if frame is not None else 1.0
         if s.splats is not None and s.splats_id != self._splats_id:
             g = s.splats
             self.nodes["/map/gaussians"] = scene.add_gaussian_splats(
@@ -225,17 +225,15 @@ class ViewerServer:
             self._keyframe_labels = labels
             self._keyframe_list.options = ("none", *labels)
 
-    def _frame_camera(self, centre: np.ndarray, extent: float, up: np.ndarray) -> None:
-        """Point the browsers' camera at the map from above and behind, once."""
+    def _frame_camera(self, frame: Framing) -> None:
+        """Point the browsers' camera at the map (scene.framing), once."""
         self._framed = True
-        self.server.scene.set_up_direction(tuple(float(v) for v in up))
-        side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-        side /= np.linalg.norm(side)
-        position = centre + extent * (1.6 * up + 1.6 * side)
+        up = tuple(float(v) for v in frame.up)
+        self.server.scene.set_up_direction(up)
         cam = self.server.initial_camera
-        cam.position, cam.look_at, cam.up = tuple(position), tuple(centre), tuple(up)
+        cam.position, cam.look_at, cam.up = tuple(frame.position), tuple(frame.look_at), up
         for client in self.server.get_clients().values():
-            client.camera.position, client.camera.look_at, client.camera.up_direction = tuple(position), tuple(centre), tuple(up)
+            client.camera.position, client.camera.look_at, client.camera.up_direction = tuple(frame.position), tuple(frame.look_at), up
 
 
 class _HandshakeNoise(logging.Filter):
