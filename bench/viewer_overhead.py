@@ -105,11 +105,12 @@ def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extr
         raise SystemExit(f"viewer_overhead: {' '.join(cmd)} failed ({proc.returncode}): {err.strip().splitlines()[-1:]}")
     metrics = json.loads((out / "metrics.json").read_text())
     log = (out / "train.log").read_text() if (out / "train.log").is_file() else ""
-    found = re.search(r"viewer: (\d+) snapshots, median ([\d.]+) ms on the training thread", log)
+    found = re.search(r"viewer: (\d+) snapshots, median ([\d.]+) ms on the training thread, ([\d.]+) ms CPU drawing", log)
     if viewer and found is None:
         raise SystemExit(f"viewer_overhead: no browser connected to the run in {out} (no snapshot taken)")
     return {"viewer": viewer, "fit_s": metrics["mapping_time_s"], "wall_s": wall, "iterations": metrics["iterations"],
-            "snapshots": int(found.group(1)) if found else 0, "snapshot_ms_median": float(found.group(2)) if found else None}
+            "snapshots": int(found.group(1)) if found else 0, "snapshot_ms_median": float(found.group(2)) if found else None,
+            "draw_cpu_ms_median": float(found.group(3)) if found else None}
 
 
 def main() -> None:
@@ -143,6 +144,7 @@ def main() -> None:
     result = {"command": " ".join(sys.argv), "steps": args.steps, "repeats": args.repeats, "refresh_s": args.refresh,
               "browser_nice": args.browser_nice, "fit_s_median_off": off, "fit_s_median_on": on, "ratio": on / off,
               "snapshot_ms_median": float(np.median(snap)), "snapshot_share_of_fit": share,
+              "draw_cpu_ms_median": float(np.median([r["draw_cpu_ms_median"] for r in runs if r["viewer"]])),
               "host": f"{socket.gethostname()}, {os.cpu_count()} CPUs",
               "runs": runs}  # fmt: skip
     Path(args.json).write_text(json.dumps(result, indent=2))
@@ -151,7 +153,7 @@ def main() -> None:
           f"reference page; both nice {args.browser_nice}), "
           f"ratio {on / off:.3f} ({100 * (on / off - 1):+.1f} %; median of {args.repeats} interleaved runs of {args.steps} steps, "
           f"snapshots: {result['snapshot_ms_median']:.0f} ms on the training thread every {args.refresh:g} s, {100 * share:.1f} % "
-          f"of the fit) -> {args.json}")
+          f"of the fit, {result['draw_cpu_ms_median']:.0f} ms CPU drawing each) -> {args.json}")
 
 
 if __name__ == "__main__":

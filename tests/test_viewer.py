@@ -4,6 +4,7 @@ the map of a training run grow. Tiny synthetic runs (tests/conftest.py TINY)."""
 from __future__ import annotations
 
 import io
+import re
 import shutil
 import socket
 import subprocess
@@ -62,6 +63,20 @@ def _serve(run_dir: Path):
     server, provider = serve(run_dir, "127.0.0.1", None, _free_port())
     assert server.wait_idle(timeout=30)
     return server, provider
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["+viewer.port=9000"], "viewer.port: set while the viewer is off; add viewer=on"),
+    (["viewer=on", "+viewer.colour=red"], "viewer.colour: unknown key"),
+    (["viewer=on", "viewer.refresh_s=0"], "viewer.refresh_s=0.0 is out of range"),
+    (["viewer=on", "viewer.port=70000"], "viewer.port=70000 is out of range"),
+    (["viewer=on", "viewer.max_share=0"], "viewer.max_share=0.0 is out of range"),
+])  # fmt: skip
+def test_a_bad_viewer_key_is_one_line_naming_it(overrides, message):
+    from segs.config import validate
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        validate(compose(TINY + overrides), mapper=False)
 
 
 def test_a_busy_port_is_skipped_or_refused_when_given():

@@ -22,6 +22,7 @@ class ViewerConfig:
     port: int | None
     first_port: int
     refresh_s: float
+    max_share: float
     test_views: int
 
 
@@ -38,6 +39,7 @@ def viewer_config(node: Mapping[str, Any] | None) -> ViewerConfig | None:
         ("port", cfg.port is None or 1 <= cfg.port <= 65535, "null or a port in [1, 65535]"),
         ("first_port", 1 <= cfg.first_port <= 65535, "a port in [1, 65535]"),
         ("refresh_s", cfg.refresh_s > 0, "a number of seconds > 0"),
+        ("max_share", 0 < cfg.max_share <= 1, "a fraction in (0, 1]"),
         ("test_views", cfg.test_views >= 0, "an integer >= 0"),
     ):
         if not ok:

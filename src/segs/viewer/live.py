@@ -1,11 +1,12 @@
 """The viewer during a run: `LiveViewer` (a Lightning callback of segs.train) and
 `TrackingViewer` (called by segs.track after each frame).
 
-Both take a snapshot at most every `viewer.refresh_s` seconds and only while a browser is
-connected: on the training thread, between two steps, the Gaussians are decoded once
-(GaussianMapper.gaussians, through the contract), copied to the CPU and handed to the server's
-drawing thread, which does everything else (covariances, the ground-truth alignment, encoding,
-sending). A keyframe selected in a browser is rendered between two steps as well.
+Both take a snapshot at most every `viewer.refresh_s` seconds (training: and with at most
+`viewer.max_share` of the training thread's time) and only while a browser is connected. On the
+training thread, between two steps, the Gaussians are decoded once (GaussianMapper.gaussians,
+through the contract), one held-out frame is rendered for the panel's PSNR, and the copies are
+handed to the server's drawing thread, which does everything else (covariances, the ground-truth
+alignment, encoding, sending). A keyframe selected in a browser is rendered between two steps.
 """
 from __future__ import annotations
 
@@ -81,10 +82,16 @@ class LiveViewer(L.Callback):
         self.bridge = next((c for c in trainer.callbacks if isinstance(c, SlamBridge)), None)
         self._last_step, self._t_step = trainer.global_step, time.perf_counter()
 
+    def period(self) -> float:
+        """Seconds between two snapshots: refresh_s, or longer when the last snapshot took more
+        than max_share of it on the training thread."""
+        cost = self.snapshot_ms[-1] / 1000.0 if self.snapshot_ms else 0.0
+        return max(self.cfg.refresh_s, cost / self.cfg.max_share)
+
     def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         self.server.serve_selection(lambda kf_id: self._selection(pl_module, kf_id))
         now = time.perf_counter()
-        if now - self._last < self.cfg.refresh_s or not self.server.clients():
+        if now - self._last < self.period() or not self.server.clients():
             return
         self._last = now
         self.refresh(trainer, pl_module)
@@ -94,7 +101,9 @@ class LiveViewer(L.Callback):
         if self.server.clients():
             self.refresh(trainer, pl_module)
         if self.snapshot_ms:
-            log.info("viewer: %d snapshots, median %.1f ms on the training thread", len(self.snapshot_ms), np.median(self.snapshot_ms))
+            self.server.wait_idle(timeout=30)
+            log.info("viewer: %d snapshots, median %.1f ms on the training thread, %.1f ms CPU drawing them", len(self.snapshot_ms),
+                     np.median(self.snapshot_ms), np.median(self.server.draw_ms) if self.server.draw_ms else float("nan"))  # fmt: skip
 
     def teardown(self, trainer, pl_module, stage: str) -> None:
         close(self.server, trainer.default_root_dir)
@@ -140,6 +149,7 @@ class LiveViewer(L.Callback):
             "tracking": _fps(bridge.tracking_fps() if bridge is not None else None),
             "training": "n/a" if rate is None else f"{rate:.1f} steps/s",
             "frames dropped (live)": dropped(frontend) if frontend is not None else "n/a",
+            "refresh": f"every {self.period():.0f} s",
         }
 
     def _test_psnr(self, module: GaussianMapper, step: int) -> str:

@@ -16,6 +16,7 @@ import math
 import queue
 import socket
 import threading
+import time
 from typing import Callable
 
 import numpy as np
@@ -75,6 +76,7 @@ class ViewerServer:
         self._viser = viser
         self.selections: queue.Queue[int] = queue.Queue()
         self.drawn = 0  # snapshots drawn so far (tests wait on it)
+        self.draw_ms: list[float] = []  # CPU time of the drawing thread per snapshot
         self._pending: Snapshot | None = None
         self._cond = threading.Condition()
         self._closed = False
@@ -162,10 +164,12 @@ class ViewerServer:
                 if self._closed:
                     return
                 snapshot, self._pending, self._drawing = self._pending, None, True
+            t0 = time.thread_time()
             try:
                 self._draw(snapshot)
             except Exception:  # noqa: BLE001 - a drawing failure must not end the run it shows
                 log.exception("viewer: drawing a snapshot failed")
+            self.draw_ms.append((time.thread_time() - t0) * 1000.0)
             with self._cond:
                 self.drawn, self._drawing = self.drawn + 1, False
                 self._cond.notify_all()
