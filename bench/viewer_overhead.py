@@ -5,19 +5,21 @@
 Runs `python -m segs.train` (default: the bundled sample, eval off) alternately without the
 viewer (viewer=off) and with it (viewer=on), repeated --repeats times (off, on, off, on, ...);
 compares the fit time (metrics.json mapping_time_s: training steps, tracking beside them, the
-viewer's snapshots) by the median of each side. Prints one line `viewer overhead: ...` and writes
+viewer's snapshots) by the median of each side, and the CPU time of the whole training process
+(less disturbed than wall time by other work on a shared host). Prints one line `viewer overhead: ...` and writes
 the figures to --json.
 
 Both sides have a headless Chromium (Debian's `chromium`) open at nice --browser-nice (default 19):
 with viewer=on it opens the run's page as soon as the server is up and stays connected until the
-run ends; with viewer=off it shows a reference page (a viser scene of 40,000 splats served by this
-script). The 3D page renders continuously, in software without a GPU (about one core here); in use
-that happens on the machine the page is opened from (over the network / SSH), not on the training
-machine's cores, and at nice 19 it takes only the cores training leaves idle. It is there on both
-sides because a busy low-priority process alone changes the training time on this host (it keeps
-the virtual CPUs from idling between OpenMP waits: docs/performance.md "Web viewer"), so the
-difference is the viewer's: snapshots on the training thread, the server's threads, the sends.
---browser-nice 0 measures browsers competing with training for the cores.
+run ends; with viewer=off it shows the same viewer's page of a finished run (`python -m segs.view`
+of a first, uncounted run of the same command, served beside). The page renders continuously, in
+software without a GPU (about one core here); in use that happens on the machine the page is
+opened from (over the network / SSH), not on the training machine's cores. It is there on both
+sides because the browser alone changes the training time on this host (it takes cores from
+training even at nice 19, and a busy low-priority process also keeps the virtual CPUs from idling
+between OpenMP waits: docs/performance.md "Web viewer"), so the difference is the live viewer's:
+snapshots on the training thread, the drawing and sending threads, and the browser's work on each
+update. --browser-nice 0 measures browsers competing with training at the same priority.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shutil
 import socket
 import subprocess
@@ -60,16 +63,14 @@ def wait_port(port: int, proc: subprocess.Popen, timeout: float = 300.0) -> bool
     return False
 
 
-def reference_page() -> str:
-    """URL of a viser scene of 40,000 splats served by this process (the viewer=off side's page)."""
-    import viser
-
-    n = 40_000
-    centres = np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)
-    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
-    server.scene.add_gaussian_splats("/reference", centers=centres, covariances=np.tile(np.eye(3, dtype=np.float32) * 0.003, (n, 1, 1)),
-                                     rgbs=np.clip(centres * 0.3 + 0.5, 0, 1), opacities=np.full((n, 1), 0.8, np.float32))  # fmt: skip
-    return f"http://127.0.0.1:{server.get_port()}"
+def reference_page(run_dir: Path, env: dict) -> tuple[subprocess.Popen, str]:
+    """`python -m segs.view run_dir` in a process of its own: (process, URL of its page)."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "segs.view", str(run_dir), "--port", str(port)], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    if not wait_port(port, proc):
+        raise SystemExit(f"viewer_overhead: python -m segs.view {run_dir} did not serve")
+    return proc, f"http://127.0.0.1:{port}"
 
 
 def open_browser(url: str, nice: int) -> subprocess.Popen:
@@ -80,22 +81,30 @@ def open_browser(url: str, nice: int) -> subprocess.Popen:
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
 
 
-def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extra: list[str], reference: str) -> dict:
-    """One training run; returns its fit / wall seconds and the viewer's snapshot log line."""
+def _children_cpu() -> float:
+    """User + system CPU seconds of this process's children that have ended."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extra: list[str], reference: str | None) -> dict:
+    """One training run; returns its fit / wall / CPU seconds and the viewer's snapshot log line.
+    reference: the page the browser shows during a viewer=off run (None: no browser)."""
     port = free_port()
     cmd = [sys.executable, "-m", "segs.train", f"trainer.max_steps={steps}", *BASE, f"hydra.run.dir={out}", *extra]
     if viewer:
         cmd += ["viewer=on", f"viewer.port={port}", f"viewer.refresh_s={refresh}"]
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(ROOT / "src")}
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), _children_cpu()
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     browser = None
     try:
-        if not viewer:
+        if not viewer and reference is not None:
             browser = open_browser(reference, nice)
         elif wait_port(port, proc):
             browser = open_browser(f"http://127.0.0.1:{port}", nice)
         _, err = proc.communicate()
+        cpu = _children_cpu() - cpu0  # the training process only: the browser is still running
     finally:
         if browser is not None:
             browser.terminate()
@@ -108,7 +117,7 @@ def one_run(out: Path, steps: int, viewer: bool, refresh: float, nice: int, extr
     found = re.search(r"viewer: (\d+) snapshots, median ([\d.]+) ms on the training thread, ([\d.]+) ms CPU drawing", log)
     if viewer and found is None:
         raise SystemExit(f"viewer_overhead: no browser connected to the run in {out} (no snapshot taken)")
-    return {"viewer": viewer, "fit_s": metrics["mapping_time_s"], "wall_s": wall, "iterations": metrics["iterations"],
+    return {"viewer": viewer, "fit_s": metrics["mapping_time_s"], "wall_s": wall, "cpu_s": cpu, "iterations": metrics["iterations"],
             "snapshots": int(found.group(1)) if found else 0, "snapshot_ms_median": float(found.group(2)) if found else None,
             "draw_cpu_ms_median": float(found.group(3)) if found else None}
 
@@ -125,9 +134,13 @@ def main() -> None:
     if not Path(CHROMIUM).is_file():
         raise SystemExit(f"viewer_overhead: {CHROMIUM} not found (Debian: apt-get install chromium)")
     tmp = Path(tempfile.mkdtemp(prefix="segs-viewer-overhead-"))
-    reference = reference_page()
-    runs = []
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(ROOT / "src")}
+    runs, view = [], None
     try:
+        # a first run (not counted: it also warms the caches) whose page the viewer=off side shows
+        first = one_run(tmp / "first", args.steps, False, args.refresh, args.browser_nice, args.overrides, None)
+        print(f"  first run (not counted): fit {first['fit_s']:.1f} s", file=sys.stderr, flush=True)
+        view, reference = reference_page(tmp / "first", env)
         for i in range(args.repeats):
             for viewer in (False, True):
                 runs.append(one_run(tmp / f"{i}_{'on' if viewer else 'off'}", args.steps, viewer, args.refresh, args.browser_nice,
@@ -135,25 +148,32 @@ def main() -> None:
                 print(f"  run {len(runs)}: viewer {'on ' if viewer else 'off'} fit {runs[-1]['fit_s']:.1f} s, "
                       f"{runs[-1]['snapshots']} snapshots", file=sys.stderr, flush=True)
     finally:
+        if view is not None:
+            view.terminate()
+            view.wait(timeout=30)
         shutil.rmtree(tmp, ignore_errors=True)
     off = float(np.median([r["fit_s"] for r in runs if not r["viewer"]]))
     on = float(np.median([r["fit_s"] for r in runs if r["viewer"]]))
     snap = [r["snapshot_ms_median"] for r in runs if r["viewer"]]
+    cpu_off = float(np.median([r["cpu_s"] for r in runs if not r["viewer"]]))
+    cpu_on = float(np.median([r["cpu_s"] for r in runs if r["viewer"]]))
     # the snapshots' own time on the training thread, a share of the fit time (median over the runs)
     share = float(np.median([r["snapshots"] * r["snapshot_ms_median"] / 1000 / r["fit_s"] for r in runs if r["viewer"]]))
     result = {"command": " ".join(sys.argv), "steps": args.steps, "repeats": args.repeats, "refresh_s": args.refresh,
               "browser_nice": args.browser_nice, "fit_s_median_off": off, "fit_s_median_on": on, "ratio": on / off,
+              "cpu_s_median_off": cpu_off, "cpu_s_median_on": cpu_on, "cpu_ratio": cpu_on / cpu_off,
               "snapshot_ms_median": float(np.median(snap)), "snapshot_share_of_fit": share,
               "draw_cpu_ms_median": float(np.median([r["draw_cpu_ms_median"] for r in runs if r["viewer"]])),
               "host": f"{socket.gethostname()}, {os.cpu_count()} CPUs",
               "runs": runs}  # fmt: skip
     Path(args.json).write_text(json.dumps(result, indent=2))
     sys.stdout.flush()
-    print(f"viewer overhead: fit {on:.1f} s with the viewer and a browser on its page vs {off:.1f} s without (a browser on a "
-          f"reference page; both nice {args.browser_nice}), "
+    print(f"viewer overhead: fit {on:.1f} s with the viewer and a browser on its page vs {off:.1f} s without (the browser on "
+          f"a finished run's page; nice {args.browser_nice}), "
           f"ratio {on / off:.3f} ({100 * (on / off - 1):+.1f} %; median of {args.repeats} interleaved runs of {args.steps} steps, "
           f"snapshots: {result['snapshot_ms_median']:.0f} ms on the training thread every {args.refresh:g} s, {100 * share:.1f} % "
-          f"of the fit, {result['draw_cpu_ms_median']:.0f} ms CPU drawing each) -> {args.json}")
+          f"of the fit, {result['draw_cpu_ms_median']:.0f} ms CPU drawing each; CPU time of the whole run {cpu_on:.1f} vs "
+          f"{cpu_off:.1f} s, ratio {cpu_on / cpu_off:.3f}) -> {args.json}")
 
 
 if __name__ == "__main__":
