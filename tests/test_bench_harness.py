@@ -16,9 +16,10 @@ import segs
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
-# analyses whose results do not depend on the machine (no timings), and headline.py, which reads
-# the runs' own records: no machine record
-NO_RECORD = {"ate_diagnostics.py", "calibrate_7scenes.py", "place_recognition.py", "seven_scenes_signal.py", "headline.py"}
+# analyses whose results do not depend on the machine (no timings), headline.py, which reads the
+# runs' own records, and viewer_library.py, which prints and writes nothing: no machine record
+NO_RECORD = {"ate_diagnostics.py", "calibrate_7scenes.py", "place_recognition.py", "seven_scenes_signal.py", "headline.py",
+             "viewer_library.py"}
 
 
 @pytest.fixture(scope="module")

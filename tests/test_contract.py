@@ -51,6 +51,12 @@ class RecordingMapper:
     def count_active(self, w2c, camera, threshold):
         return 0
 
+    def training_views(self):
+        return []
+
+    def gaussians(self):
+        return None
+
     def export_ply(self, path):
         return 0
 

@@ -16,9 +16,15 @@ FORBIDDEN = {
     # the bridge, the image logger and the evaluation see the mapper only through its contract
     "callbacks": ("segs.raster", "segs.train", "segs.evaluation", "segs.report"),
     "evaluation.py": ("segs.raster", "segs.slam", "segs.train", "segs.report"),
+    # the web viewer reads the run (bridge, records, files) and the mapper through its contract;
+    # it never drives SLAM, rasterizes or composes configs (segs.view, the entry point, does that)
+    "viewer": ("segs.raster", "segs.slam", "segs.train", "segs.track", "segs.evaluation", "segs.report", "segs.config"),
+    "map_points.py": ("segs.raster", "segs.slam", "segs.modules", "segs.data", "segs.callbacks", "segs.train", "segs.viewer"),
 }
-# what callbacks / evaluation may import of segs.modules (records, protocol, image metrics)
+# what callbacks / evaluation / the viewer may import of segs.modules (records, protocol, image metrics)
 MAPPER_CONTRACT = ("segs.modules.contract", "segs.modules.metrics")
+# the only modules that may import the viewer: the entry points, and the config check of its group
+VIEWER_USERS = ("train.py", "track.py", "view.py", "config.py")
 def _imports(path: Path) -> list[str]:
     tree = ast.parse(path.read_text())
     names = []
@@ -45,10 +51,19 @@ def test_package_does_not_import_across_the_boundary(package):
     assert not bad, bad
 
 
-@pytest.mark.parametrize("package", ["callbacks", "evaluation.py"])
-def test_bridge_evaluation_and_logger_use_only_the_mapper_contract(package):
+@pytest.mark.parametrize("package", ["callbacks", "evaluation.py", "viewer"])
+def test_bridge_evaluation_logger_and_viewer_use_only_the_mapper_contract(package):
     bad = [f"{path.relative_to(SRC)} imports {name}" for path in _files(package) for name in _imports(path)
            if name.startswith("segs.modules") and name not in MAPPER_CONTRACT]  # fmt: skip
+    assert not bad, bad
+
+
+def test_only_the_entry_points_import_the_viewer():
+    bad = [f"{p.relative_to(SRC)} imports {name}" for p in SRC.rglob("*.py") for name in _imports(p)
+           if name.startswith("segs.viewer") and p.parent.name != "viewer" and str(p.relative_to(SRC)) not in VIEWER_USERS]
+    bad += [f"config.py imports {name}" for name in _imports(SRC / "config.py")
+            if name.startswith("segs.viewer.") and name != "segs.viewer.config"]  # fmt: skip
+    bad += [f"{p.relative_to(SRC)} imports segs.view" for p in _files("viewer") if "segs.view" in _imports(p)]
     assert not bad, bad
 
 

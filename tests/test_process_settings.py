@@ -2,6 +2,7 @@
 (OMP_WAIT_POLICY=PASSIVE, glibc's freed memory kept) themselves, before torch loads."""
 from __future__ import annotations
 
+import ast
 import json
 import os
 import subprocess
@@ -90,3 +91,38 @@ def test_segs_train_applies_the_settings_before_torch_loads(tmp_path):
     assert "after torch was imported" not in res.stderr
     p = _provenance(tmp_path / "metrics.json")
     assert p["threads"]["OMP_WAIT_POLICY"] == "PASSIVE" and p["malloc"] == "kept"
+
+
+SRC = ROOT / "src" / "segs"
+# programs whose imports load torch: the guarded call is their first statement
+TORCH_PROGRAMS = ("train.py", "view.py")
+# programs whose imports do not: the call opens their __main__ block
+PROGRAMS = ("track.py", "slam/runtime/process.py", "slam/backend/ba_process.py", "slam/map/vocabulary.py")
+
+
+def _main_blocks(path: Path) -> list[tuple[int, ast.If]]:
+    """(position among the module's statements, block) of each `if __name__ == "__main__":`."""
+    body = ast.parse(path.read_text()).body
+    return [(i, node) for i, node in enumerate(body) if isinstance(node, ast.If) and ast.unparse(node.test) == "__name__ == '__main__'"]
+
+
+def _applies_first(block: ast.If) -> bool:
+    calls = [ast.unparse(s) for s in block.body if isinstance(s, ast.Expr)]
+    return bool(calls) and calls[0] == "process_settings.apply()"
+
+
+@pytest.mark.parametrize("program", TORCH_PROGRAMS)
+def test_programs_that_load_torch_apply_the_settings_before_their_imports(program):
+    body = ast.parse((SRC / program).read_text()).body
+    first = next(i for i, node in enumerate(body)
+                 if not (isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant))  # the docstring
+                 and not (isinstance(node, ast.ImportFrom) and node.module == "__future__"))  # fmt: skip
+    blocks = _main_blocks(SRC / program)
+    assert blocks and blocks[0][0] == first, f"{program}: the guarded apply() is not the first statement"
+    assert any(ast.unparse(s) == "process_settings.apply()" for s in blocks[0][1].body)
+
+
+@pytest.mark.parametrize("program", PROGRAMS)
+def test_other_programs_apply_the_settings_first_in_their_main_block(program):
+    blocks = _main_blocks(SRC / program)
+    assert blocks and _applies_first(blocks[-1][1]), f"{program}: __main__ does not start with process_settings.apply()"

@@ -130,7 +130,8 @@ def make_sequence(data_cfg: DictConfig):
 def validate(cfg: DictConfig, mapper: bool = True) -> None:
     """Raise ConfigError naming the first bad key.
 
-    Checks, before anything runs: every number of the config is finite, the typed mapper configs
+    Checks, before anything runs: every number of the config is finite, the viewer group
+    (segs.viewer.config: keys, ranges, viser installed when on), the typed mapper configs
     (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
     the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
     mapper=False (segs.track, which builds no mapper) skips the typed mapper configs and the
@@ -150,6 +151,10 @@ def validate(cfg: DictConfig, mapper: bool = True) -> None:
         from segs.eval_config import eval_config
 
         eval_config(cfg.eval)
+    if OmegaConf.select(cfg, "viewer", default=None) is not None:
+        from segs.viewer.config import viewer_config
+
+        viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True))
     if not mapper:
         return
     from segs.modules.config import mapping_config, model_config, raster_config

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from segs.callbacks.memory import peak_rss_mb
 from segs.eval_config import EvalConfig
+from segs.map_points import FILE_NAME as MAP_POINTS
 from segs.modules.contract import GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.run_folder import write_json_atomic
@@ -135,6 +136,7 @@ def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg: EvalConfig, out
     ate_result = frontend_ate(frontend, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.ate_align)
     if eval_cfg.write_ply:
         module.export_ply(out / "point_cloud.ply")
+    bridge.map_points.write(out / MAP_POINTS)
     summary = run_summary(module, sequence, bridge, timing)
     metrics = {
         **images,
@@ -159,6 +161,7 @@ def write_not_evaluated(module: GaussianMapper, sequence, bridge, out: Path, tim
     """metrics.json of a run trained with eval.enabled=false (status "not_evaluated"): the run's
     numbers without any test-view or trajectory metric."""
     out.mkdir(parents=True, exist_ok=True)
+    bridge.map_points.write(out / MAP_POINTS)
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
     metrics = {**none, "test_views": 0, **run_summary(module, sequence, bridge, timing), **(notes or {}), "status": "not_evaluated",
                "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed",

@@ -5,6 +5,7 @@ Same configs as `segs.train`: the sequence (`data`) is fed frame by frame to the
 
 - trajectory.txt: the estimated camera-to-world poses of the tracked frames (TUM format),
 - keyframes.txt: `kf_id frame_index timestamp` of the keyframes still in the map,
+- map_points.ply: the SLAM map points (x y z, colour, creating kf_id; segs.map_points),
 - tracking.json: ATE RMSE (evo; SE(3) for RGB-D / stereo, Sim(3) for monocular, from
   `sensor.ate_align`), tracking FPS, tracked fraction, lost frame ranges and frontend statistics;
   with a Sim(3) alignment also the step scale (`segs.trajectory.step_scale`: estimated / true
@@ -25,11 +26,14 @@ from omegaconf import DictConfig, OmegaConf
 from segs import process_settings
 from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
+from segs.map_points import FILE_NAME as MAP_POINTS
+from segs.map_points import MapPointLog
 from segs.provenance import provenance
 from segs.run_folder import write_json_atomic
 from segs.slam.runtime.process import FrontendProcess
 from segs.slam.runtime.runner import RunResult, run_sequence
 from segs.trajectory import frontend_ate, lost_ranges, step_scale, write_trajectory
+from segs.viewer.config import viewer_config
 
 log = logging.getLogger("segs.track")
 # frames read and prepared ahead of tracking, in a child process (slam_mode=interleaved): enough to
@@ -51,6 +55,8 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     if align not in ("se3", "sim3", "none"):
         raise ConfigError(f"sensor.ate_align={align!r} is not one of se3, sim3, none")
 
+    points = MapPointLog()  # every map point handed over, moved by loop corrections (map_points.ply)
+    viewer = _viewer(cfg, sequence, frontend, points, align)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -60,21 +66,28 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
     try:
         if isinstance(frontend, FrontendProcess):
             try:
-                result = _run_process(frontend, bar)
+                result = _run_process(frontend, bar, points, viewer)
             finally:
                 frontend.close()
         else:
+            def on_frame(frame, res) -> None:
+                if bar is not None:
+                    bar.update(1)
+                if viewer is not None:
+                    viewer.tick(frame.index + 1)
+
             # the next frames are read and their features built in a child process while one is tracked
-            result = run_sequence(frontend, sequence, on_frame=(lambda f, r: bar.update(1)) if bar else None,
-                                  prefetch=PREFETCH, reader="process")
+            result = run_sequence(frontend, sequence, on_frame=on_frame, prefetch=PREFETCH, reader="process", on_update=points.add)
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
-        _write_partial(out, sequence, frontend)
+        _write_partial(out, sequence, frontend, points)
         raise
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
+    if viewer is not None:
+        viewer.tick(len(sequence), force=True)
 
     traj = frontend.trajectory()
     write_trajectory(out / "trajectory.txt", sequence.timestamps, traj)  # nothing tracked: empty, ATE n/a
@@ -83,6 +96,7 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         f.write("# kf_id frame_index timestamp\n")
         for k, i in sorted(kfs.items()):
             f.write(f"{k} {i} {sequence.timestamps[i]:.6f}\n")
+    points.write(out / MAP_POINTS)
     lost = frontend.lost_frames()
     ate_result = frontend_ate(frontend, sequence.timestamps, traj, sequence.gt_poses, align)
     stats = frontend.stats() if hasattr(frontend, "stats") else {}
@@ -131,31 +145,51 @@ def run(cfg: DictConfig, progress: bool = True) -> dict:
         f"  {metrics['tracking_fps'] or 0:.1f} frames/s in process() ({result.process_s:.1f} s), "
         f"finish {result.finish_s:.1f} s, wall {wall:.1f} s ({metrics['wall_fps'] or 0:.1f} frames/s)"
         + (f", {metrics['frames_dropped_live']} frames dropped (live)" if metrics["slam_mode"] == "live" else "") + "\n"
-        "  trajectory.txt (TUM), keyframes.txt, tracking.json"
+        "  trajectory.txt (TUM), keyframes.txt, map_points.ply, tracking.json"
     )
+    if viewer is not None:
+        from segs.viewer.live import close
+
+        close(viewer.server, out)
     return metrics
 
 
-def _write_partial(out: Path, sequence, frontend) -> None:
-    """Ctrl-C: the poses tracked so far into trajectory_partial.txt (TUM); no trajectory.txt or
-    tracking.json, so an interrupted run never looks finished."""
+def _viewer(cfg: DictConfig, sequence, frontend, points: MapPointLog, align: str):
+    """The web viewer of viewer=on (segs.viewer.live.TrackingViewer), or None."""
+    vcfg = viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True)) if "viewer" in cfg else None
+    if vcfg is None:
+        return None
+    from segs.viewer.live import TrackingViewer
+
+    return TrackingViewer(vcfg, sequence, frontend, points, align)
+
+
+def _write_partial(out: Path, sequence, frontend, points: MapPointLog) -> None:
+    """Ctrl-C: the poses tracked so far into trajectory_partial.txt (TUM) and the map points so far
+    into map_points.ply; no trajectory.txt or tracking.json, so an interrupted run never looks
+    finished."""
     try:
         traj, path = frontend.trajectory(), out / "trajectory_partial.txt"
         n = write_trajectory(path, sequence.timestamps, traj) if traj else 0
+        points.write(out / MAP_POINTS)
         print(f"\nsegs.track: interrupted; {n} of {len(sequence)} frames tracked"
               + (f", their poses in {path}" if n else ""), file=sys.stderr)
     except Exception as exc:  # noqa: BLE001 - the interrupt itself must not be masked
         print(f"\nsegs.track: interrupted; the partial trajectory could not be written ({exc})", file=sys.stderr)
 
 
-def _run_process(frontend: FrontendProcess, bar) -> RunResult:
+def _run_process(frontend: FrontendProcess, bar, points: MapPointLog, viewer) -> RunResult:
     """Wait for a frontend process to track the sequence; process_s is the child's own time
     in process() (its throughput), finish_s is not separated from it (0)."""
     result = RunResult()
     while not frontend.done():
-        result.update = result.update.merge(frontend.poll(timeout=0.2))
+        update = frontend.poll(timeout=0.2)
+        points.add(update)
+        result.update = result.update.merge(update)
         if bar is not None:
             bar.update(frontend.cursor - bar.n)
+        if viewer is not None:
+            viewer.tick(frontend.cursor)
     result.process_s = frontend.process_seconds
     return result
 

@@ -23,7 +23,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
@@ -37,6 +37,7 @@ from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
 from segs.provenance import provenance
 from segs.slam.runtime.process import FrontendProcess
+from segs.viewer.config import viewer_config
 
 log = logging.getLogger("segs.train")
 
@@ -70,6 +71,11 @@ def build(cfg: DictConfig, session_start: float | None = None):
     bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(sequence=sequence, frontend=frontend)
     callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
     callbacks.append(RunRecord(identity, session_start))
+    viewer = viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True)) if "viewer" in cfg else None
+    if viewer is not None:  # viewer=on: the map served to a browser while training (segs.viewer)
+        from segs.viewer.live import LiveViewer
+
+        callbacks.append(LiveViewer(viewer, sequence, align=cfg.eval.ate_align))
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir)
     return sequence, frontend, module, bridge, trainer

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 from evo.core import metrics, sync
-from evo.core.geometry import GeometryException
+from evo.core.geometry import GeometryException, umeyama_alignment
 from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 
@@ -76,6 +76,37 @@ def ate_not_measured(align: str, reason: str) -> dict:
     replays ground-truth poses): every figure None, `reason` saying why."""
     return {"rmse": None, "mean": None, "median": None, "max": None, "pairs": 0, "align": align, "scale": None,
             "reason": reason}  # fmt: skip
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM trajectory file -> (timestamps [M], c2w [M,4,4]); an empty file gives M = 0."""
+    if Path(path).stat().st_size == 0:
+        return np.zeros(0), np.zeros((0, 4, 4))
+    traj = file_interface.read_tum_trajectory_file(str(path))
+    return np.asarray(traj.timestamps, np.float64), np.stack(traj.poses_se3).astype(np.float64)
+
+
+def alignment(est_t: np.ndarray, est_c2w: np.ndarray, gt_t: np.ndarray, gt_c2w: np.ndarray, align: str = "se3",
+              max_diff: float = 0.1) -> tuple[np.ndarray, np.ndarray, float] | None:  # fmt: skip
+    """(R [3,3], t [3], s) with ground-truth centres ~ s R est + t (Umeyama on the poses associated
+    by timestamp, as `ate` aligns; s = 1 unless align is "sim3"; identity for "none"), or None
+    with fewer than 3 associated poses or degenerate centres. est_t [M], est_c2w [M,4,4]; gt_t [N],
+    gt_c2w [N,4,4] (NaN rows where unknown)."""
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
+    ok = np.isfinite(gt_c2w.reshape(len(gt_c2w), -1)).all(axis=1)
+    if len(est_t) < 3 or ok.sum() < 3:
+        return None
+    ref, traj = sync.associate_trajectories(_trajectory(gt_t[ok], gt_c2w[ok]), _trajectory(est_t, est_c2w), max_diff=max_diff)
+    if ref.num_poses < 3:
+        return None
+    if align == "none":
+        return np.eye(3), np.zeros(3), 1.0
+    try:
+        r, t, s = umeyama_alignment(traj.positions_xyz.T, ref.positions_xyz.T, align == "sim3")
+    except GeometryException:
+        return None
+    return r, t, float(s)
 
 
 def ate(

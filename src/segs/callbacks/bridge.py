@@ -19,6 +19,7 @@ from tqdm import tqdm
 from segs.callbacks.memory import MemoryGuard
 from segs.data.frame import Frame, Sequence
 from segs.errors import TrackingFailed
+from segs.map_points import MapPointLog
 from segs.modules.contract import GaussianMapper, TrainingView, to_uint8
 from segs.slam.base import Frontend, MapUpdate
 from segs.slam.runtime.process import FrontendProcess
@@ -62,6 +63,7 @@ class SlamBridge(L.Callback):
         self.processed = 0
         self.held_out_points = 0  # SLAM points created by held-out keyframes, never given to the mapper
         self._watch = None  # memory check called while tracking: where -> None (raises LimitError)
+        self.map_points = MapPointLog()  # every SLAM map point handed over (map_points.ply, the viewer)
         self.in_process = isinstance(frontend, FrontendProcess)
 
     # -- Lightning hooks ------------------------------------------------------------------------
@@ -170,15 +172,15 @@ class SlamBridge(L.Callback):
         bar = tqdm(total=len(self.sequence) - self.cursor, desc="tracking the rest", disable=not self.progress, leave=False)
         if self.in_process:  # its updates are superseded by the final poses, as below
             while not self.frontend.done():
-                self.frontend.poll(timeout=0.1)
+                self.map_points.add(self.frontend.poll(timeout=0.1))
                 bar.update(self.frontend.cursor - self.cursor)
                 self.cursor = self.frontend.cursor
         while self.cursor < len(self.sequence):
             self._feed_one()
             bar.update(1)
         bar.close()
-        self.frontend.poll()
-        self._finish()
+        self.map_points.add(self.frontend.poll())
+        self.map_points.add(self._finish())
 
     def _frame(self, index: int) -> Frame:
         return self._cache[index] if index in self._cache else self.sequence[index]
@@ -188,6 +190,7 @@ class SlamBridge(L.Callback):
         new view's pose is registered once, with the view."""
         if update.is_empty():
             return
+        self.map_points.add(update)
         kf_frames = self.frontend.keyframe_frames()
         poses = {int(k): torch.tensor(v, dtype=torch.float32) for k, v in update.poses.items()}
         new = []
@@ -269,6 +272,7 @@ class SlamBridge(L.Callback):
             "process_seconds": self.process_seconds,
             "processed": self.processed,
             "frontend": self.frontend.state_dict(),
+            "map_points": self.map_points.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -280,4 +284,6 @@ class SlamBridge(L.Callback):
         # tracking speed over every session (checkpoints older than this field: this session only)
         self.process_seconds, self.processed = float(state.get("process_seconds", 0.0)), int(state.get("processed", 0))
         self.frontend.load_state_dict(state["frontend"])
+        if "map_points" in state:  # checkpoints older than map_points.ply: the points of this session only
+            self.map_points.load_state_dict(state["map_points"])
         self._restored = True

@@ -5,8 +5,8 @@ callback they are installed for the duration of fit. What a first signal does de
 phase the run is in:
 
 - "step" (training): the step in progress finishes, then checkpoints/last.ckpt (atomically:
-  model, optimizer, keyframes, SLAM map and trajectory, step, RNG states) and
-  trajectory_partial.txt are written, the resume command is printed and the trainer stops;
+  model, optimizer, keyframes, SLAM map and trajectory, step, RNG states),
+  trajectory_partial.txt and map_points.ply are written, the resume command is printed and the trainer stops;
   segs.train exits with 130 (SIGINT) or 143 (SIGTERM).
 - "defer" (writing the final checkpoint): the write finishes, then the run stops the same way.
 - "now" (tracking the rest, evaluating): :class:`Interrupted` is raised at once; segs.train
@@ -27,6 +27,7 @@ from typing import Iterator
 import lightning as L
 
 from segs.callbacks.checkpoint import save_atomic
+from segs.map_points import FILE_NAME as MAP_POINTS
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +120,7 @@ class GracefulInterrupt(L.Callback):
         bridge = next((c for c in trainer.callbacks if hasattr(c, "write_partial_trajectory")), None)
         if bridge is not None:
             bridge.write_partial_trajectory(out / "trajectory_partial.txt")
+            bridge.map_points.write(out / MAP_POINTS)
         print(
             f"segs: interrupted at step {trainer.global_step}; checkpoint {self.checkpoint}\n"
             f"segs: resume with the same command plus  ckpt_path={self.checkpoint}",

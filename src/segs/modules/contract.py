@@ -1,5 +1,5 @@
-"""The bridge contract: what the SLAM bridge, the evaluation and the callbacks may use of the
-mapper (the `GaussianMapper` protocol), and the records that cross it.
+"""The bridge contract: what the SLAM bridge, the evaluation, the callbacks and the viewer may use
+of the mapper (the `GaussianMapper` protocol), and the records that cross it.
 
 Poses are world-to-camera [4,4] float32 tensors (gsplat's viewmat); the bridge converts the
 frontend's numpy poses once, the mapper stores them as given.
@@ -55,9 +55,28 @@ class MapCounts:
     mb: float
 
 
+@dataclass
+class GaussianCloud:
+    """Every Gaussian of the map, on the CPU in float32, as `export_ply` writes them (decoded with
+    the first training view's direction and appearance for SEGS).
+
+    means [N,3]; quats [N,4] wxyz, unit; scales [N,3] linear; opacities [N] in (0,1); colors [N,3]
+    in [0,1].
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+
 @runtime_checkable
 class GaussianMapper(Protocol):
-    """The mapper as the bridge, the evaluation and the callbacks see it."""
+    """The mapper as the bridge, the evaluation, the callbacks and the viewer see it."""
 
     iteration_ms: list[float]  # wall time of every training step so far (resumed runs included)
     raster_backend: str | None  # the rasterizer backend of the latest render ("cpu", "cuda", "torch"); None before one
@@ -86,6 +105,13 @@ class GaussianMapper(Protocol):
 
     def count_active(self, w2c: np.ndarray | torch.Tensor, camera: Camera, threshold: float) -> int:
         """Gaussians of the view at w2c whose opacity exceeds threshold (compactness)."""
+
+    def training_views(self) -> list[TrainingView]:
+        """The training views in arrival order (the records themselves, with their current poses)."""
+
+    def gaussians(self) -> GaussianCloud | None:
+        """Every Gaussian decoded as export_ply writes them, copied to the CPU (the viewer's
+        snapshot); None before the first training view."""
 
     def export_ply(self, path: str | Path) -> int:
         """Write the Gaussians (decoded with the first view's direction) as a 3D-GS PLY; returns

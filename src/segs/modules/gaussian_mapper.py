@@ -3,7 +3,7 @@ manual optimisation) on the training views pushed by the SLAM bridge.
 
 It implements segs.modules.contract.GaussianMapper, the only part of it the bridge, the
 evaluation and the callbacks use: add_keyframes, update_poses, add_points, correct_map, counts,
-first_view, render_image, count_active, export_ply.
+first_view, render_image, count_active, training_views, gaussians, export_ply.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from segs.modules.config import MappingConfig, RasterConfig
-from segs.modules.contract import MapCounts, TrainingView
+from segs.modules.contract import GaussianCloud, MapCounts, TrainingView
 from segs.modules.metrics import psnr
 from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.resolution import coarse_camera, coarse_depth, coarse_image, downscale_factor
@@ -47,6 +47,7 @@ class GaussianMapperModule(L.LightningModule):
         self.iteration_ms: list[float] = []
         self.loss_history: list[float] = []
         self.raster_backend: str | None = None  # the backend that rendered last (provenance)
+        self.restored_step = 0  # the loaded checkpoint's step: renders outside a trainer (segs.view) use it
 
     # -- the bridge contract (segs.modules.contract.GaussianMapper) -----------------------------
     def add_keyframes(self, views: list[TrainingView]) -> None:
@@ -85,6 +86,19 @@ class GaussianMapperModule(L.LightningModule):
         """Gaussians of the view at w2c [4,4] whose opacity exceeds threshold."""
         return self.model.count_active(View(torch.as_tensor(w2c, dtype=torch.float32), camera), threshold)
 
+    def training_views(self) -> list[TrainingView]:
+        return list(self.views.frames.values())
+
+    @torch.no_grad()
+    def gaussians(self) -> GaussianCloud | None:
+        """Every Gaussian decoded with the first training view's direction and appearance, on the CPU."""
+        first = self.views.first()
+        if first is None:
+            return None
+        d = self.model.decode_all(View(first.w2c, first.camera, first.kf_id))
+        cpu = lambda t: t.detach().to("cpu", torch.float32)  # noqa: E731
+        return GaussianCloud(cpu(d.means), cpu(d.quats), cpu(d.scales), cpu(d.opacities), cpu(d.colors))
+
     def export_ply(self, path) -> int:
         """The map as a 3D-GS PLY, decoded with the first training view's direction and appearance."""
         first = self.views.first()
@@ -108,7 +122,9 @@ class GaussianMapperModule(L.LightningModule):
 
     def render(self, view: View, step: int | None = None):
         """Decode and rasterize one view; returns (rasterizer output, Decoded)."""
-        decoded = self.model.decode(view, self.global_step if step is None else step)
+        if step is None:
+            step = self.global_step if self._trainer is not None else self.restored_step
+        decoded = self.model.decode(view, step)
         r = self.raster
         bg = torch.tensor(r.background, dtype=torch.float32, device=self.device)
         out = rasterize(
@@ -184,6 +200,7 @@ class GaussianMapperModule(L.LightningModule):
         checkpoint["state_dict"] = upgrade_state_keys(checkpoint["state_dict"], self.model.LEGACY_STATE_KEYS, "model.")
         sd = {k.removeprefix("model."): v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
         self.model.resize_for_state(sd)
+        self.restored_step = int(checkpoint.get("global_step", 0))
         extra = checkpoint.get("segs", {})
         if "store" in extra:
             self.views.load_state_dict(extra["store"])

@@ -163,7 +163,13 @@ class PlainGaussians(SceneModel):
     def resize_for_state(self, state_dict) -> None:
         self.gs.resize(state_dict["gs.means"].shape[0])
 
+    @torch.no_grad()
+    def decode_all(self, view: View) -> Decoded:
+        """Every Gaussian, coloured by its SH at the full degree seen from the view's centre."""
+        return self.decode(view, self.total_steps)
+
     def export_ply(self, path: str | Path, view: View) -> int:
+        """Every Gaussian with its SH coefficients (degree model.sh_degree: 3(D+1)^2-3 f_rest_*)."""
         g = self.gs
         return write_gaussian_ply(
             path, g["means"], F.normalize(g["quats"], dim=-1), torch.exp(g["log_scales"]),

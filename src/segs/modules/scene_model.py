@@ -138,5 +138,10 @@ class SceneModel(nn.Module, abc.ABC):
         """Re-create per-primitive tensors with the checkpoint's sizes before loading it."""
 
     @abc.abstractmethod
+    def decode_all(self, view: View) -> Decoded:
+        """Every primitive decoded for this view's direction and appearance, without culling
+        (no gradient): the Gaussians export_ply writes."""
+
+    @abc.abstractmethod
     def export_ply(self, path, view: View) -> int:
         """Write the Gaussians decoded for `view` as a standard 3D-GS PLY; returns their count."""

@@ -193,9 +193,13 @@ class SegsModel(SceneModel):
             self.appearance.view_rows = {int(k): int(v) for k, v in state["appearance"]["view_rows"].items()}
 
     @torch.no_grad()
-    def export_ply(self, path: str | Path, view: View) -> int:
-        """Decode every anchor (no frustum culling) with this view's direction and appearance."""
+    def decode_all(self, view: View) -> Decoded:
+        """Every anchor decoded (no frustum culling) with this view's direction and appearance."""
         view = self._on_device(view)
         embedding = self.appearance(view.w2c, view.kf_id)
-        d, _ = self.field.decode(view, embedding, cull=False)
+        return self.field.decode(view, embedding, cull=False)[0]
+
+    def export_ply(self, path: str | Path, view: View) -> int:
+        """The Gaussians of decode_all as degree-0 SH (their colours are decoded, not SH)."""
+        d = self.decode_all(view)
         return write_gaussian_ply(path, d.means, d.quats, d.scales, d.opacities, rgb_to_sh_dc(d.colors))

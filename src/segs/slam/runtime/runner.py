@@ -29,7 +29,8 @@ class RunResult:
 
 def run_sequence(frontend: Frontend, sequence: Sequence, frames: Iterable[int] | None = None,
                  on_frame: Callable[[Frame, FrameResult], None] | None = None,
-                 prefetch: int = 0, reader: str = "thread") -> RunResult:
+                 prefetch: int = 0, reader: str = "thread",
+                 on_update: Callable[[MapUpdate], None] | None = None) -> RunResult:
     """Process the frames (default: all) in order, polling after each, then finish().
 
     prefetch: frames read and prepared (`Frontend.prepare`: features) ahead while the current one
@@ -38,6 +39,7 @@ def run_sequence(frontend: Frontend, sequence: Sequence, frames: Iterable[int] |
     "thread" (a background thread of this process) or "process" (a child process, which shares no
     interpreter lock with tracking; needs `Frontend.preparer()`, else a thread is used). With a
     process reader on_frame gets the prepared frame (index, timestamp, features), not the images.
+    on_update: called with each polled MapUpdate (finish's included), in order.
     """
     if reader not in ("thread", "process"):
         raise ConfigError(f"run_sequence: reader must be 'thread' or 'process', got {reader!r}")
@@ -51,12 +53,18 @@ def run_sequence(frontend: Frontend, sequence: Sequence, frames: Iterable[int] |
         res = frontend.process(item)
         out.process_s += time.perf_counter() - t0 + prepared_seconds(item)
         out.results.append(res)
-        out.update = out.update.merge(frontend.poll())
+        update = frontend.poll()
+        out.update = out.update.merge(update)
+        if on_update is not None:
+            on_update(update)
         if on_frame is not None:
             on_frame(frame, res)
     t0 = time.perf_counter()
-    out.update = out.update.merge(frontend.finish())
+    update = frontend.finish()
     out.finish_s = time.perf_counter() - t0
+    out.update = out.update.merge(update)
+    if on_update is not None:
+        on_update(update)
     return out
 
 

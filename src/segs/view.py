@@ -1,0 +1,184 @@
+"""`python -m segs.view RUN_DIR [--host H] [--port P]`: a run folder in the web viewer.
+
+Any run folder of segs.train or segs.track, finished or interrupted: the Gaussians (decoded by
+the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt; point_cloud.ply without a
+checkpoint), the SLAM map points (map_points.ply), the estimated trajectory (trajectory.txt or
+trajectory_partial.txt) beside the ground truth when the run's data can still be read, the
+keyframes (selecting one shows its image and the render from its pose) and the run's numbers.
+Serves until Ctrl-C. Defaults of --host / --port / --first-port: conf/viewer/on.yaml. A busy
+--port, a folder that is not a run: one line, exit 2.
+"""
+from __future__ import annotations
+
+if __name__ == "__main__":  # the program: process settings before torch loads (docs/decisions/process-settings.md)
+    from segs import process_settings
+
+    process_settings.apply()
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from segs.config import CONF_DIR, make_sequence, user_errors_exit
+from segs.errors import UserInputError
+from segs.viewer.saved_run import SavedRun, read_gaussian_ply, read_run
+from segs.viewer.scene import KeyframeNode, Snapshot, Splats, Trajectories, thumbnail
+
+log = logging.getLogger("segs.view")
+
+
+def load_mapper(run: SavedRun):
+    """The mapper of the run's checkpoint (on the CPU, the run's own config), or None."""
+    if run.kind != "train" or run.checkpoint is None:
+        return None
+    import torch
+
+    from segs.modules.config import build_model, mapping_config, raster_config
+    from segs.modules.gaussian_mapper import GaussianMapperModule
+
+    cfg = run.config
+    raster = {**OmegaConf.to_container(cfg.raster, resolve=True), "backend": "auto"}  # a GPU run viewed on a CPU
+    module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(raster), seed=int(cfg.seed))
+    try:
+        ckpt = torch.load(run.checkpoint, map_location="cpu", weights_only=False)
+        module.on_load_checkpoint(ckpt)
+        module.load_state_dict(ckpt["state_dict"])
+    except Exception as err:  # noqa: BLE001 - any reader error means the same to the user
+        raise UserInputError(f"{run.checkpoint}: not a readable checkpoint of this run ({type(err).__name__})") from None
+    return module.eval()
+
+
+def load_sequence(run: SavedRun):
+    """(the run's sequence, None) or (None, why it cannot be read): ground truth and images."""
+    try:
+        return make_sequence(run.config.data), None
+    except (UserInputError, OSError, KeyError, ValueError) as err:
+        return None, f"the run's data cannot be read ({' '.join(str(err).split())[:100]})"
+
+
+def snapshot(run: SavedRun, mapper, sequence, note: str | None) -> Snapshot:
+    """Everything the run folder shows, as one snapshot."""
+    splats = None
+    if mapper is not None and (cloud := mapper.gaussians()) is not None:
+        splats = Splats.from_cloud(cloud)
+    elif run.ply is not None:
+        splats = read_gaussian_ply(run.ply)
+    align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
+    trajs = None
+    if run.trajectory is not None:
+        gt = (np.asarray(sequence.timestamps), sequence.gt_poses) if sequence is not None else (None, None)
+        trajs = Trajectories(run.trajectory[0], run.trajectory[1], gt[0], gt[1], align)
+    points = run.points or (None, None)
+    return Snapshot(splats=splats, splats_id=1, points=points[0], point_colors=points[1], trajectories=trajs,
+                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, splats, note))  # fmt: skip
+
+
+def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
+    """The training views of the mapper, or the keyframes of keyframes.txt at their poses of
+    the trajectory (their images from the run's data, when it can be read)."""
+    if mapper is not None:
+        return [KeyframeNode(v.kf_id, v.frame_index, v.w2c.numpy().astype(np.float64), v.camera, thumbnail(v.image.numpy()))
+                for v in mapper.training_views()]  # fmt: skip
+    if sequence is None or run.trajectory is None or not run.keyframes:
+        return []
+    stamps, c2w = run.trajectory
+    out = []
+    for kf_id, index in run.keyframes:
+        near = np.flatnonzero(np.abs(stamps - sequence.timestamps[index]) < 1e-4)
+        if len(near):
+            image = (np.clip(sequence[index].rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+            out.append(KeyframeNode(kf_id, index, np.linalg.inv(c2w[near[0]]), sequence.camera, thumbnail(image)))
+    return out
+
+
+def panel(run: SavedRun, mapper, splats, note: str | None) -> dict[str, str]:
+    r = run.results
+    fmt = lambda key, spec, unit="": "n/a" if r.get(key) is None else f"{r[key]:{spec}}{unit}"  # noqa: E731
+    rows = {"run": f"{run.kind} ({run.status.replace('_', ' ')}): {run.path.name}"}
+    if run.kind == "train":
+        counts = mapper.counts() if mapper is not None else None
+        rows["step"] = str(r.get("iterations", mapper.restored_step if mapper is not None else "n/a"))
+        rows["test PSNR so far"] = f"{fmt('psnr', '.2f', ' dB')} ({r.get('test_views', 0)} test views)" if r else "n/a (not evaluated)"
+        rows["anchors"] = str(counts.anchors if counts else r.get("anchors", "n/a"))
+        rows["Gaussians"] = str(counts.gaussians if counts else r.get("gaussians", "n/a"))
+        rows["Gaussians drawn"] = str(len(splats) if splats is not None else 0)
+        rows["training"] = fmt("iterations_per_s", ".1f", " steps/s")
+    else:
+        rows["Gaussians"] = "0 (tracking only)"
+        rows["keyframes"] = str(len(run.keyframes))
+        rows["ATE RMSE"] = "n/a" if r.get("ate_rmse_m") is None else f"{r['ate_rmse_m'] * 100:.2f} cm"
+    rows["map points"] = str(len(run.points[0]) if run.points is not None else "n/a (no map_points.ply)")
+    rows["frames tracked"] = f"{r['frames_tracked']} of {r['frames']}" if "frames_tracked" in r else "n/a"
+    rows["tracking"] = fmt("tracking_fps", ".1f", " frames/s")
+    rows["frames dropped (live)"] = str(r.get("frames_dropped_live", "n/a"))
+    if note:
+        rows["note"] = note
+    return rows
+
+
+def provider(run: SavedRun, mapper, sequence):
+    """kf_id -> (image, render or None, note) for a keyframe selected in the browser."""
+    from segs.modules.contract import to_uint8
+
+    def show(kf_id: int):
+        if mapper is not None:
+            view = next((v for v in mapper.training_views() if v.kf_id == kf_id), None)
+            if view is not None:
+                render = to_uint8(mapper.render_image(view.w2c, view.camera, view.kf_id)["image"]).numpy()
+                return view.image.numpy(), render, f"keyframe {kf_id} (frame {view.frame_index}): image | render"
+        index = dict(run.keyframes).get(kf_id)
+        if index is None or sequence is None:
+            return np.zeros((8, 8, 3), np.uint8), None, f"keyframe {kf_id}: no image (the run's data cannot be read)"
+        why = "tracking only: no map to render" if run.kind == "track" else "no checkpoint: no render"
+        return (np.clip(sequence[index].rgb, 0, 1) * 255 + 0.5).astype(np.uint8), None, f"keyframe {kf_id} (frame {index}): image ({why})"
+
+    return show
+
+
+def serve(run_dir: str | Path, host: str, port: int | None, first_port: int):
+    """Start serving the run: (server, selection provider); the caller answers selections.
+    The folder and the port are checked first, before the checkpoint and the data are read."""
+    from segs.viewer.config import viewer_config
+    from segs.viewer.live import start_server
+
+    run = read_run(run_dir)
+    cfg = OmegaConf.merge(OmegaConf.load(CONF_DIR / "viewer" / "on.yaml"), {"host": host, "port": port, "first_port": first_port})
+    server = start_server(viewer_config(OmegaConf.to_container(cfg)), f"segs.view: {run.path.name}")
+    try:
+        mapper = load_mapper(run)
+        sequence, note = load_sequence(run)
+        server.submit(snapshot(run, mapper, sequence, note))
+    except BaseException:
+        server.close()
+        raise
+    return server, provider(run, mapper, sequence)
+
+
+def main(argv: list[str] | None = None) -> None:
+    defaults = OmegaConf.load(CONF_DIR / "viewer" / "on.yaml")
+    parser = argparse.ArgumentParser(prog="python -m segs.view", description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", help="a run folder of segs.train or segs.track")
+    parser.add_argument("--host", default=defaults.host, help=f"address to serve on (default {defaults.host})")
+    parser.add_argument("--port", type=int, default=defaults.port,
+                        help="serve on this port, or exit 2 when it is busy (default: the first free one)")
+    parser.add_argument("--first-port", type=int, default=defaults.first_port,
+                        help=f"the first port tried without --port (default {defaults.first_port})")
+    args = parser.parse_args(argv)
+    with user_errors_exit():
+        server, answer = serve(args.run_dir, args.host, args.port, args.first_port)
+    try:
+        while True:
+            server.serve_selection(answer)
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        server.close()
+        print("\nsegs.view: stopped", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

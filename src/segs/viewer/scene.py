@@ -1,0 +1,157 @@
+"""What the viewer draws: one `Snapshot` of a run (numpy only), and the geometry that turns it
+into scene nodes (covariances, camera centres, the ground truth in the estimated frame).
+
+A snapshot is taken on the thread that owns the map (between training steps, between tracked
+frames, once for a finished run) and drawn by the server's own thread; its arrays are copies or
+arrays that their owner replaces rather than edits, so drawing never races with training.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from segs.data.frame import Camera
+from segs.modules.contract import GaussianCloud
+from segs.trajectory import alignment
+
+
+@dataclass
+class Splats:
+    """Gaussians to draw: means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], colors [N,3]
+    (float32 numpy, colours and opacities in [0,1])."""
+
+    means: np.ndarray
+    quats: np.ndarray
+    scales: np.ndarray
+    opacities: np.ndarray
+    colors: np.ndarray
+
+    @classmethod
+    def from_cloud(cls, cloud: GaussianCloud) -> "Splats":
+        return cls(*(t.numpy().astype(np.float32, copy=False) for t in
+                     (cloud.means, cloud.quats, cloud.scales, cloud.opacities, cloud.colors)))  # fmt: skip
+
+    def __len__(self) -> int:
+        return len(self.means)
+
+    def covariances(self) -> np.ndarray:
+        """[N,3,3] R diag(scale^2) R^T."""
+        return covariances(self.quats, self.scales)
+
+
+@dataclass
+class KeyframeNode:
+    """A keyframe's camera: w2c [4,4], intrinsics, and a small image for its frustum (or None)."""
+
+    kf_id: int
+    frame_index: int
+    w2c: np.ndarray
+    camera: Camera
+    thumbnail: np.ndarray | None = None
+
+
+@dataclass
+class Trajectories:
+    """Estimated camera-to-world poses est_c2w [M,4,4] at est_t [M]; ground truth gt_c2w [N,4,4]
+    at gt_t [N] (NaN rows where unknown) or None; align: how the ground truth is brought into
+    the estimated frame (se3 / sim3 / none, the run's ATE alignment)."""
+
+    est_t: np.ndarray
+    est_c2w: np.ndarray
+    gt_t: np.ndarray | None = None
+    gt_c2w: np.ndarray | None = None
+    align: str = "se3"
+
+    def estimated_centres(self) -> np.ndarray:
+        """[M,3]."""
+        return self.est_c2w[:, :3, 3]
+
+    def ground_truth_centres(self) -> np.ndarray | None:
+        """[K,3] ground-truth camera centres in the estimated frame (the inverse of the ATE
+        alignment), or None without ground truth or with fewer than 3 associated poses."""
+        if self.gt_c2w is None or self.gt_t is None:
+            return None
+        found = alignment(self.est_t, self.est_c2w, self.gt_t, self.gt_c2w, self.align)
+        if found is None:
+            return None
+        r, t, s = found
+        ok = np.isfinite(self.gt_c2w.reshape(len(self.gt_c2w), -1)).all(axis=1)
+        return (self.gt_c2w[ok, :3, 3] - t) @ r / s
+
+
+@dataclass
+class Snapshot:
+    """One state of a run.
+
+    splats: the Gaussians or None (tracking-only run, nothing mapped yet); splats_id changes
+    when they do (the server sends them again only then). points [M,3] / point_colors [M,3] in
+    [0,1]: the SLAM map points. panel: label -> value, in order (markdown table of the page).
+    """
+
+    splats: Splats | None = None
+    splats_id: int = 0
+    points: np.ndarray | None = None
+    point_colors: np.ndarray | None = None
+    trajectories: Trajectories | None = None
+    keyframes: list[KeyframeNode] = field(default_factory=list)
+    panel: dict[str, str] = field(default_factory=dict)
+
+
+def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """quats [N,4] wxyz (any norm), scales [N,3] -> covariances [N,3,3] float32."""
+    q = quats / np.linalg.norm(quats, axis=1, keepdims=True).clip(1e-12)
+    w, x, y, z = q.T
+    rot = np.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], 1).reshape(-1, 3, 3)  # fmt: skip
+    m = rot * scales[:, None, :]
+    return (m @ m.transpose(0, 2, 1)).astype(np.float32)
+
+
+@dataclass
+class Framing:
+    """Where the browsers' camera starts: position [3] looking at look_at [3] with up [3]; the
+    map's centre [3] and extent (the scale of the frustums, lines and points)."""
+
+    centre: np.ndarray
+    extent: float
+    up: np.ndarray
+    position: np.ndarray
+    look_at: np.ndarray
+
+
+def framing(snapshot: Snapshot, back: float = 0.6, rise: float = 0.3) -> Framing | None:
+    """The snapshot's framing, or None when it shows nothing.
+
+    centre = median of the map (points or Gaussians, else camera centres), extent = the 90th
+    percentile of their distance to it, up = the cameras' mean up direction (-y of OpenCV). The
+    camera starts behind the first keyframe (back * extent behind it, rise * extent above),
+    looking where it looked: the run's first view with its frustum in sight; without cameras,
+    from above and aside the centre."""
+    cams = [np.linalg.inv(k.w2c) for k in sorted(snapshot.keyframes, key=lambda k: k.kf_id)]
+    if not cams and snapshot.trajectories is not None and len(snapshot.trajectories.est_c2w):
+        cams = list(snapshot.trajectories.est_c2w)
+    parts = [p for p in (snapshot.points, snapshot.splats.means if snapshot.splats is not None else None) if p is not None and len(p)]
+    where = np.concatenate(parts) if parts else (np.stack([c[:3, 3] for c in cams]) if cams else None)
+    if where is None or not len(where):
+        return None
+    centre = np.median(where, axis=0)
+    extent = float(np.percentile(np.linalg.norm(where - centre, axis=1), 90)) or 1.0
+    up = -np.mean([c[:3, 1] for c in cams], axis=0) if cams else np.array([0.0, 0.0, 1.0])
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else np.array([0.0, 0.0, 1.0])
+    if cams:
+        forward, origin = cams[0][:3, 2], cams[0][:3, 3]
+        return Framing(centre, extent, up, origin - back * extent * forward + rise * extent * up, origin + extent * forward)
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return Framing(centre, extent, up, centre + extent * (1.6 * up + 1.6 * side / np.linalg.norm(side)), centre)
+
+
+def thumbnail(image: np.ndarray, width: int = 96) -> np.ndarray:
+    """image [H,W,3] uint8 -> [h,width,3] uint8 (nearest pixels: cheap on the training thread)."""
+    h, w = image.shape[:2]
+    rows = (np.arange(max(int(round(h * width / w)), 1)) * h / max(int(round(h * width / w)), 1)).astype(int)
+    cols = (np.arange(width) * w / width).astype(int)
+    return np.ascontiguousarray(image[rows][:, cols])

@@ -1,0 +1,246 @@
+"""The web viewer (segs.viewer, python -m segs.view): the scene it serves for a train and a track
+run, its bad-input answers, and a real browser (headless Chromium through playwright) watching
+the map of a training run grow. Tiny synthetic runs (tests/conftest.py TINY)."""
+from __future__ import annotations
+
+import io
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from conftest import TINY
+from segs.config import compose
+from segs.errors import ConfigError, DataError
+
+viser = pytest.importorskip("viser", reason='the viewer extra is not installed (pip install -e ".[viewer]")')
+
+from segs.viewer.saved_run import read_run  # noqa: E402
+from segs.viewer.server import choose_port  # noqa: E402
+
+CHROMIUM = Path("/usr/bin/chromium")
+BROWSER_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                "--disable-sync", "--no-first-run", "--disable-dev-shm-usage"]  # fmt: skip
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _run(module: str, out: Path, *overrides: str) -> Path:
+    """A tiny run of `python -m module` (segs.train / segs.track) in the folder out."""
+    res = subprocess.run([sys.executable, "-m", module, *TINY, *overrides, f"hydra.run.dir={out}"], capture_output=True, text=True,
+                         timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    return out
+
+
+@pytest.fixture(scope="module")
+def train_run(tmp_path_factory) -> Path:
+    """A finished tiny training run (metrics.json, final.ckpt, point_cloud.ply, map_points.ply)."""
+    return _run("segs.train", tmp_path_factory.mktemp("train") / "run", "callbacks.periodic_checkpoint.every_n_steps=0")
+
+
+@pytest.fixture(scope="module")
+def track_run(tmp_path_factory) -> Path:
+    """A finished tiny tracking-only run (trajectory.txt, keyframes.txt, map_points.ply, tracking.json)."""
+    return _run("segs.track", tmp_path_factory.mktemp("track") / "run")
+
+
+def _serve(run_dir: Path):
+    from segs.view import serve
+
+    server, provider = serve(run_dir, "127.0.0.1", None, _free_port())
+    assert server.wait_idle(timeout=30)
+    return server, provider
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["+viewer.port=9000"], "viewer.port: set while the viewer is off; add viewer=on"),
+    (["viewer=on", "+viewer.colour=red"], "viewer.colour: unknown key"),
+    (["viewer=on", "viewer.refresh_s=0"], "viewer.refresh_s=0.0 is out of range"),
+    (["viewer=on", "viewer.port=70000"], "viewer.port=70000 is out of range"),
+    (["viewer=on", "viewer.max_share=0"], "viewer.max_share=0.0 is out of range"),
+])  # fmt: skip
+def test_a_bad_viewer_key_is_one_line_naming_it(overrides, message):
+    from segs.config import validate
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        validate(compose(TINY + overrides), mapper=False)
+
+
+def test_a_busy_port_is_skipped_or_refused_when_given():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        taken, note = choose_port("127.0.0.1", None, port)
+        assert taken != port and str(port) in note and str(taken) in note
+        with pytest.raises(ConfigError, match=f"port {port} on 127.0.0.1 is busy"):
+            choose_port("127.0.0.1", port, 8080)
+
+
+def test_the_server_serves_a_train_run(train_run):
+    run = read_run(train_run)
+    assert run.kind == "train" and run.status == "finished" and run.checkpoint.name == "final.ckpt"
+    server, provider = _serve(train_run)
+    try:
+        page = urllib.request.urlopen(server.url, timeout=10).read().decode()
+        assert "<html" in page.lower()
+        splats = server.nodes["/map/gaussians"]
+        n_ply = len(PlyData.read(str(train_run / "point_cloud.ply"))["vertex"])
+        assert len(splats.buffer) == n_ply > 0  # the Gaussians the mapper decodes = the exported ones
+        assert len(server.nodes["/map/points"].points) == len(PlyData.read(str(train_run / "map_points.ply"))["vertex"]) > 0
+        assert {"/trajectory/estimated", "/trajectory/ground_truth"} <= set(server.nodes)
+        frustums = [k for k in server.nodes if k.startswith("/keyframes/")]
+        assert len(frustums) >= 3
+        kf_id = int(frustums[0].rsplit("_", 1)[1])
+        server.selections.put(kf_id)
+        assert server.serve_selection(provider)
+        image, render, note = provider(kf_id)
+        assert render is not None and render.shape == image.shape and f"keyframe {kf_id}" in note
+        assert render.std() > 1  # a render of the map, not a blank image
+    finally:
+        server.close()
+
+
+def test_the_server_serves_a_track_run_with_its_map_points(track_run):
+    run = read_run(track_run)
+    assert run.kind == "track" and run.status == "finished" and len(run.keyframes) >= 3
+    points = PlyData.read(str(track_run / "map_points.ply"))["vertex"]
+    assert len(points) > 0 and {"x", "y", "z", "red", "green", "blue", "kf_id"} <= set(points.data.dtype.names)
+    server, provider = _serve(track_run)
+    try:
+        assert "/map/gaussians" not in server.nodes  # tracking only: no Gaussians
+        assert len(server.nodes["/map/points"].points) == len(points)
+        assert "/trajectory/estimated" in server.nodes
+        assert len([k for k in server.nodes if k.startswith("/keyframes/")]) == len(run.keyframes)
+        image, render, note = provider(run.keyframes[0][0])
+        assert render is None and image.ndim == 3 and "tracking only" in note
+    finally:
+        server.close()
+
+
+def test_an_interrupted_train_run_is_shown_from_its_last_checkpoint(train_run, tmp_path):
+    cut = tmp_path / "cut"
+    shutil.copytree(train_run, cut)
+    (cut / "metrics.json").unlink()
+    (cut / "checkpoints" / "final.ckpt").rename(cut / "checkpoints" / "last.ckpt")
+    (cut / "trajectory.txt").rename(cut / "trajectory_partial.txt")
+    (cut / "point_cloud.ply").unlink()
+    run = read_run(cut)
+    assert run.status == "interrupted" and run.checkpoint.name == "last.ckpt" and run.trajectory is not None
+    server, _ = _serve(cut)
+    try:
+        assert "/map/gaussians" in server.nodes and "/trajectory/estimated" in server.nodes
+    finally:
+        server.close()
+
+
+def test_a_folder_that_is_not_a_run_is_one_line_and_exit_2(tmp_path):
+    with pytest.raises(DataError, match="not a run folder"):
+        read_run(tmp_path)
+    res = subprocess.run([sys.executable, "-m", "segs.view", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.strip().count("\n") == 0 and "not a run folder" in res.stderr
+
+
+def test_a_given_busy_port_is_one_line_and_exit_2(track_run):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = subprocess.run([sys.executable, "-m", "segs.view", str(track_run), "--port", str(port)], capture_output=True,
+                             text=True, timeout=120)  # fmt: skip
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.strip().count("\n") == 0 and f"port {port}" in res.stderr and "busy" in res.stderr
+
+
+# -- a real browser -------------------------------------------------------------------------------
+def _browser_or_skip():
+    playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
+    if not CHROMIUM.is_file():
+        pytest.skip(f"no browser: {CHROMIUM} is missing (Debian: apt-get install chromium)")
+    return playwright
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    """The canvas part of a screenshot that the panel and the notices never cover: [h,w,3] float."""
+    from PIL import Image
+
+    image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64)
+    h, w = image.shape[:2]
+    return image[int(0.2 * h): int(0.9 * h), int(0.06 * w): int(0.6 * w)]
+
+
+def test_a_browser_shows_the_map_growing_during_training(tmp_path):
+    sync = _browser_or_skip()
+    import lightning as L
+    from torch.utils.data import DataLoader
+
+    from segs.train import StepDataset, build
+    from segs.viewer.live import LiveViewer
+
+    steps, stops = 60, (15, 60)
+    overrides = [f"trainer.max_steps={steps}", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false", "viewer=on",
+                 f"viewer.first_port={_free_port()}", "viewer.refresh_s=1000"]  # fmt: skip
+    cfg = compose(TINY + overrides, output_dir=str(tmp_path / "run"))
+    _, _, module, _, trainer = build(cfg)
+    viewer = next(c for c in trainer.callbacks if isinstance(c, LiveViewer))
+    reached = {s: threading.Event() for s in stops}
+    go_on = {s: threading.Event() for s in stops}
+    seen: dict[int, int] = {}
+
+    class PauseAt(L.Callback):
+        """At each stop: a snapshot (on the training thread, as the viewer takes them), then wait."""
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            step = trainer.global_step
+            if step in reached:
+                viewer.refresh(trainer, pl_module)
+                seen[step] = pl_module.counts().gaussians
+                reached[step].set()
+                go_on[step].wait(timeout=120)
+
+    trainer.callbacks.append(PauseAt())
+    fit = threading.Thread(target=trainer.fit, args=(module, DataLoader(StepDataset(steps), batch_size=None)), daemon=True)
+    shots = {}
+    try:
+        with sync.sync_playwright() as p:
+            # launch() gives the browser a fresh temporary profile (user data dir) of its own
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=BROWSER_ARGS)
+            page = browser.new_page(viewport={"width": 1000, "height": 700})
+            page.goto(viewer.server.url)
+            page.wait_for_selector("canvas", timeout=60_000)
+            page.wait_for_timeout(1000)
+            blank = _pixels(page.screenshot())  # connected, nothing mapped yet
+            fit.start()
+            for step in stops:
+                assert reached[step].wait(timeout=120), f"training did not reach step {step}"
+                assert viewer.server.wait_idle(timeout=60)
+                page.get_by_text(f"{step} of {steps}").wait_for(timeout=60_000)
+                page.wait_for_timeout(2500)  # the splats are sorted and drawn by the page after they arrive
+                shots[step] = _pixels(page.screenshot())
+                text = page.inner_text("body")
+                assert f"Gaussians\t{seen[step]}\n" in text or f"Gaussians {seen[step]}" in " ".join(text.split()), text
+                go_on[step].set()
+            browser.close()
+    finally:
+        for e in go_on.values():
+            e.set()
+        if fit.ident is not None:
+            fit.join(timeout=120)
+    first, last = shots[stops[0]], shots[stops[1]]
+    assert blank.var() < 50, "the canvas is not blank before the first snapshot"
+    assert first.var() > 100 and last.var() > 100, (first.var(), last.var())  # the map is drawn
+    assert np.abs(first - last).mean() > 1.0  # and it changed between the two steps
