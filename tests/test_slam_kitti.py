@@ -6,10 +6,10 @@ import importlib.util
 from pathlib import Path
 
 from segs.data.kitti import KittiSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.config import FeatureConfig
 from segs.slam.features.extractor import OrbExtractor
 from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate, step_scale
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from segs.data.synthetic import SyntheticSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.geometry import cam_center
 from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,8 +6,8 @@ import numpy as np
 
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.data.synthetic import SyntheticSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from segs.data.synthetic import SyntheticSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.orb import MOVED_MODULES, OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 
 
 @contextlib.contextmanager

@@ -11,9 +11,9 @@ import pytest
 
 from segs.config import compose, instantiate, make_frontend, make_sequence
 from segs.errors import ConfigError, DataError
+from segs.pipeline.process import FrontendProcess, _next_live
+from segs.pipeline.runner import run_sequence
 from segs.slam.base import MapUpdate
-from segs.slam.runtime.process import FrontendProcess, _next_live
-from segs.slam.runtime.runner import run_sequence
 
 BASE = ["+experiment=synthetic", "data.n_frames=16", "data.width=320", "data.height=240",
         "data.trajectory=orbit", "data.speed=0.2"]
@@ -165,7 +165,7 @@ def test_a_reader_process_from_a_script_without_a_main_guard_fails_at_once(tmp_p
     script = tmp_path / "unguarded.py"
     script.write_text(
         "from segs.config import compose, instantiate, make_sequence\n"
-        "from segs.slam.runtime.runner import run_sequence\n"
+        "from segs.pipeline.runner import run_sequence\n"
         f"cfg = compose({BASE + ['data.n_frames=4']!r}, output_dir={str(tmp_path)!r})\n"
         "seq = make_sequence(cfg.data)\n"
         "run_sequence(instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor), seq, prefetch=2, reader='process')\n")
@@ -177,7 +177,7 @@ def test_a_reader_process_from_a_script_without_a_main_guard_fails_at_once(tmp_p
 def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):
     import threading
 
-    from segs.slam.runtime.process import _FrameSource
+    from segs.pipeline.process import _FrameSource
 
     _, seq, _ = _setup(tmp_path)
     threads = []

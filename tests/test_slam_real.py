@@ -8,8 +8,8 @@ import pytest
 
 from segs.data.euroc import EurocSequence
 from segs.data.tum import TumSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"

@@ -3,8 +3,8 @@ where ../shared/data lacks them)."""
 from __future__ import annotations
 
 from segs.data.seven_scenes import SevenScenesSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import pytest
 
 from segs.data.synthetic import SyntheticSequence
+from segs.pipeline.runner import run_sequence
 from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 

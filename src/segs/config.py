@@ -55,7 +55,7 @@ def _number(v) -> bool:
 
 
 # (key, predicate, expectation) checked before anything runs; keys absent from a config are skipped
-# how the frontend runs beside mapping (segs.slam.runtime.process; conf/train.yaml slam_mode)
+# how the frontend runs beside mapping (segs.pipeline.process; conf/train.yaml slam_mode)
 SLAM_MODES = ("interleaved", "process", "live")
 
 _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
@@ -210,7 +210,7 @@ def user_errors_exit(code: int = 2) -> Iterator[None]:
 
 def make_frontend(cfg: DictConfig, sequence):
     """The configured frontend for sequence: built here (slam_mode=interleaved) or, for
-    slam_mode=process | live, a segs.slam.runtime.process.FrontendProcess that builds it in a child
+    slam_mode=process | live, a segs.pipeline.process.FrontendProcess that builds it in a child
     process (it is also built here once, so a bad slam config fails before the child starts)."""
     import functools
 
@@ -222,7 +222,7 @@ def make_frontend(cfg: DictConfig, sequence):
     frontend = factory()
     if mode == "interleaved":
         return frontend
-    from segs.slam.runtime.process import FrontendProcess
+    from segs.pipeline.process import FrontendProcess
 
     return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0),
                            uses_ground_truth_poses=frontend.uses_ground_truth_poses)

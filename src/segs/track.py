@@ -28,10 +28,10 @@ from segs.config import make_frontend, make_sequence, user_errors_exit, validate
 from segs.errors import ConfigError, DataError
 from segs.map_points import FILE_NAME as MAP_POINTS
 from segs.map_points import MapPointLog
+from segs.pipeline.process import FrontendProcess
+from segs.pipeline.runner import RunResult, run_sequence
 from segs.provenance import provenance
 from segs.run_folder import write_json_atomic
-from segs.slam.runtime.process import FrontendProcess
-from segs.slam.runtime.runner import RunResult, run_sequence
 from segs.trajectory import frontend_ate, lost_ranges, step_scale, write_trajectory
 from segs.viewer.config import viewer_config
 

@@ -35,8 +35,8 @@ from segs.eval_config import eval_config
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
+from segs.pipeline.process import FrontendProcess
 from segs.provenance import provenance
-from segs.slam.runtime.process import FrontendProcess
 from segs.viewer.config import viewer_config
 
 log = logging.getLogger("segs.train")

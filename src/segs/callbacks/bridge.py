@@ -21,8 +21,8 @@ from segs.data.frame import Frame, Sequence
 from segs.errors import TrackingFailed
 from segs.map_points import MapPointLog
 from segs.modules.contract import GaussianMapper, TrainingView, to_uint8
+from segs.pipeline.process import FrontendProcess
 from segs.slam.base import Frontend, MapUpdate
-from segs.slam.runtime.process import FrontendProcess
 
 log = logging.getLogger(__name__)
 

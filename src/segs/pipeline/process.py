@@ -15,7 +15,7 @@ trajectory / keyframes / lost frames from what the child reported. Two pacings:
   tracked (a live camera driver delivers the latest image); they are counted in dropped_frames(),
   never invented poses.
 
-The child is `python -m segs.slam.runtime.process` (pickles on stdin / stdout, like ba_process), so it
+The child is `python -m segs.pipeline.process` (pickles on stdin / stdout, like ba_process), so it
 imports only the frontend's modules (no torch, no Lightning). Checkpoints: state_dict() asks the
 child for its frontend state at a frame boundary and keeps every update the mapper has not
 polled yet beside it, so a resumed run loses and repeats nothing.
@@ -36,8 +36,8 @@ import numpy as np
 from segs import process_settings
 from segs.data.frame import Frame, Sequence
 from segs.errors import ConfigError
+from segs.pipeline.runner import iterate_in_process
 from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
-from segs.slam.runtime.runner import iterate_in_process
 
 MODES = ("interleaved", "process", "live")
 
@@ -81,7 +81,7 @@ class FrontendProcess(Frontend):
         """Start the child (once); it begins at self.cursor with the restored state, if any."""
         if self._proc is not None or self._final is not None:  # running, or the sequence is done
             return
-        self._proc = subprocess.Popen([sys.executable, "-m", "segs.slam.runtime.process"], stdin=subprocess.PIPE,
+        self._proc = subprocess.Popen([sys.executable, "-m", "segs.pipeline.process"], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE)
         state = self._resume.get("frontend") if self._resume else None
         self._send(("start", self.make_frontend, self.sequence, self.mode, self.rate, self.cursor, state))
