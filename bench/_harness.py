@@ -112,7 +112,7 @@ def build_training(overrides: list[str], max_steps: int, out: Path, callbacks: l
 
     cfg = compose(overrides + QUIET + [FEED_ALL, f"trainer.max_steps={max_steps}"], output_dir=str(out))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    sequence, _frontend, module, bridge, trainer = build(cfg, time.perf_counter())
+    sequence, _run, module, bridge, trainer = build(cfg, time.perf_counter())
     trainer.callbacks.extend(callbacks)
     return cfg, sequence, module, bridge, trainer
 

@@ -6,7 +6,7 @@ import importlib.util
 from pathlib import Path
 
 from segs.data.kitti import KittiSequence
-from segs.pipeline.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.config import FeatureConfig
 from segs.slam.features.extractor import OrbExtractor
 from segs.slam.orb import OrbFrontend

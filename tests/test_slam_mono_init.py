@@ -6,7 +6,7 @@ import numpy as np
 
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.data.synthetic import SyntheticSequence
-from segs.pipeline.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 

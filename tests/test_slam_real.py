@@ -8,7 +8,7 @@ import pytest
 
 from segs.data.euroc import EurocSequence
 from segs.data.tum import TumSequence
-from segs.pipeline.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 

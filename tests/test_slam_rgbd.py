@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from segs.data.synthetic import SyntheticSequence
-from segs.pipeline.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 

@@ -3,7 +3,7 @@ where ../shared/data lacks them)."""
 from __future__ import annotations
 
 from segs.data.seven_scenes import SevenScenesSequence
-from segs.pipeline.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 

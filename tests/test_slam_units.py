@@ -20,7 +20,7 @@ from segs.slam.backend.ba_process import BundleAdjusterProcess
 from segs.slam.estimation.optimize import (BundleAdjuster, Observations, PointSet, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
                                 refine_pose)
 from segs.slam.orb import OrbFrontend
-from segs.pipeline.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.map.vocabulary import Vocabulary, bow_score
 
 ROOT = Path(__file__).resolve().parents[1]

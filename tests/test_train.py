@@ -79,7 +79,7 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     trainer2.fit(resumed, DataLoader(StepDataset(30), batch_size=None), ckpt_path=str(ckpt), weights_only=False)
     assert seen["step"] == 20 and seen["anchors"] == n_anchors and seen["views"] > 0
     assert trainer2.global_step == 30
-    assert bridge.cursor == state["callbacks"]["SlamBridge"]["cursor"] or bridge.finished
+    assert bridge.source.cursor == state["callbacks"]["SlamBridge"]["run"]["source"]["cursor"] or bridge.run.finished
 
 
 @pytest.mark.slow

@@ -55,7 +55,7 @@ def _number(v) -> bool:
 
 
 # (key, predicate, expectation) checked before anything runs; keys absent from a config are skipped
-# how the frontend runs beside mapping (segs.pipeline.process; conf/train.yaml slam_mode)
+# how the frontend runs beside mapping (segs.pipeline's frame sources; conf/train.yaml slam_mode)
 SLAM_MODES = ("interleaved", "process", "live")
 
 _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
@@ -208,11 +208,16 @@ def user_errors_exit(code: int = 2) -> Iterator[None]:
         raise SystemExit(code) from None
 
 
-def make_frontend(cfg: DictConfig, sequence):
-    """The configured frontend for sequence: built here (slam_mode=interleaved) or, for
-    slam_mode=process | live, a segs.pipeline.process.FrontendProcess that builds it in a child
-    process (it is also built here once, so a bad slam config fails before the child starts)."""
+def make_source(cfg: DictConfig, sequence, ahead: int = 0, reader: str = "thread"):
+    """The configured frontend tracking `sequence` as a segs.pipeline frame source: built here and
+    fed in this process (slam_mode=interleaved; ahead / reader: frames read and prepared ahead of
+    tracking, segs.pipeline.readers), or built and run by a child process (slam_mode=process |
+    live: ProcessSource / LiveSource; the frontend is also built here once, so a bad slam config
+    fails before the child starts)."""
     import functools
+
+    from segs.pipeline.process import LiveSource, ProcessSource
+    from segs.pipeline.sources import InterleavedSource
 
     mode = OmegaConf.select(cfg, "slam_mode", default="interleaved")
     extra = {}
@@ -221,8 +226,6 @@ def make_frontend(cfg: DictConfig, sequence):
     factory = functools.partial(instantiate(cfg.slam), camera=sequence.camera, sensor=sequence.sensor, **extra)
     frontend = factory()
     if mode == "interleaved":
-        return frontend
-    from segs.pipeline.process import FrontendProcess
-
-    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0),
-                           uses_ground_truth_poses=frontend.uses_ground_truth_poses)
+        return InterleavedSource(frontend, sequence, ahead=ahead, reader=reader)
+    cls = LiveSource if mode == "live" else ProcessSource
+    return cls(factory, sequence, frontend.uses_ground_truth_poses, rate=OmegaConf.select(cfg, "slam_rate", default=1.0))

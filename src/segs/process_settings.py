@@ -2,7 +2,7 @@
 
 `apply()` is called by the programs, never by an import (docs/decisions/process-settings.md):
 `python -m segs.train` and `segs.track`, the child processes (`segs.pipeline.process`,
-`segs.slam.backend.ba_process`, the frame reader of `segs.pipeline.runner`), the vocabulary
+`segs.slam.backend.ba_process`, the frame reader of `segs.pipeline.readers`), the vocabulary
 trainer, bench/_harness.py and tests/conftest.py. It sets
 
 - `OMP_WAIT_POLICY=PASSIVE` unless the environment sets it: PyTorch's OpenMP threads spin after

@@ -29,13 +29,13 @@ from torch.utils.data import DataLoader, Dataset
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
 from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
-from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
+from segs.config import instantiate, make_sequence, make_source, user_errors_exit, validate
 from segs.errors import DataError, TrackingFailed
 from segs.eval_config import eval_config
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
-from segs.pipeline.process import FrontendProcess
+from segs.pipeline.run_state import RunState
 from segs.provenance import provenance
 from segs.viewer.config import viewer_config
 
@@ -56,8 +56,9 @@ class StepDataset(Dataset):
 
 
 def build(cfg: DictConfig, session_start: float | None = None):
-    """Check the config (and the checkpoint to resume), then instantiate sequence, frontend,
-    module, bridge and trainer. session_start: time.perf_counter() at the start of the run."""
+    """Check the config (and the checkpoint to resume), then instantiate sequence, run state
+    (frame source and split), module, bridge and trainer. session_start: time.perf_counter() at
+    the start of the run."""
     validate(cfg)
     record = read_checkpoint(cfg.get("ckpt_path"))
     sequence = make_sequence(cfg.data)
@@ -66,9 +67,9 @@ def build(cfg: DictConfig, session_start: float | None = None):
     identity = fingerprint(cfg, sequence)
     if record is not None:
         check_resume(cfg.ckpt_path, record, identity)
-    frontend = make_frontend(cfg, sequence)
+    run = RunState(sequence, make_source(cfg, sequence), holdout_every=eval_config(cfg.eval).holdout_every)
     module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
-    bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(sequence=sequence, frontend=frontend)
+    bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(run=run)
     callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
     callbacks.append(RunRecord(identity, session_start))
     viewer = viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True)) if "viewer" in cfg else None
@@ -78,7 +79,7 @@ def build(cfg: DictConfig, session_start: float | None = None):
         callbacks.append(LiveViewer(viewer, sequence, align=cfg.eval.ate_align))
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir)
-    return sequence, frontend, module, bridge, trainer
+    return sequence, run, module, bridge, trainer
 
 
 def _find(trainer: L.Trainer, kind: type):
@@ -108,7 +109,7 @@ def run(cfg: DictConfig) -> dict:
     validate(cfg)  # before seeding: seed itself is checked
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     out = Path(cfg.paths.output_dir)
-    sequence, frontend, module, bridge, trainer = build(cfg, t_start)
+    sequence, state, module, bridge, trainer = build(cfg, t_start)
     # the DataLoader draws its base seed from this generator, not from torch's global RNG, which a
     # resumed run restores from its checkpoint (one draw there made resumed runs diverge)
     loader = DataLoader(StepDataset(cfg.trainer.max_steps), batch_size=None, shuffle=False,
@@ -117,7 +118,7 @@ def run(cfg: DictConfig) -> dict:
     saved: dict = {}  # "final": the final checkpoint once this session has written it
     try:
         with stopper:
-            return _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper, t_start, saved)
+            return _run(cfg, out, sequence, state, module, bridge, trainer, loader, stopper, t_start, saved)
     except Interrupted as err:
         final = saved.get("final")
         where = f"the trained map is in {final}; evaluate it with the same command plus  ckpt_path={final}" if final \
@@ -125,18 +126,17 @@ def run(cfg: DictConfig) -> dict:
         print(f"\nsegs: stopped by {err}; no metrics.json written; {where}", file=sys.stderr)
         raise SystemExit(err.code) from None
     finally:
-        if isinstance(frontend, FrontendProcess):
-            frontend.close()
+        state.source.close()
 
 
-def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper, t_start, saved: dict) -> dict:
+def _run(cfg, out, sequence, state, module, bridge, trainer, loader, stopper, t_start, saved: dict) -> dict:
     record, guard = _find(trainer, RunRecord), _find(trainer, MemoryGuard)
     phase = getattr(stopper, "in_phase", lambda _: contextlib.nullcontext())
     try:
         # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
         trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
     except TrackingFailed as err:  # the method's result on this input: recorded, then reported
-        write_tracking_failed(out, err, len(frontend.trajectory()), time.perf_counter() - t_start, _provenance(cfg, sequence, module))
+        write_tracking_failed(out, err, len(state.trajectory()), time.perf_counter() - t_start, _provenance(cfg, sequence, module))
         raise
     except SIGTERMException:  # Lightning's own SIGTERM handling stopped the loop (exit code 0 otherwise)
         if isinstance(stopper, GracefulInterrupt) and stopper.checkpoint is None:
@@ -161,11 +161,11 @@ def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper,
         made = _provenance(cfg, sequence, module)
         evaluation = eval_config(cfg.eval)
         if not evaluation.enabled:
-            metrics = write_not_evaluated(module, sequence, bridge, out, timing, notes, made)
+            metrics = write_not_evaluated(module, sequence, state, out, timing, notes, made)
             print(f"\nsegs: results in {out} (eval.enabled=false: no test view rendered)\n  {metrics['iterations']} iterations, "
                   f"{metrics['anchors']} anchors; metrics.json{', checkpoints/final.ckpt' if saved['final'] else ''}")  # fmt: skip
             return metrics
-        metrics = evaluate(module, sequence, bridge, evaluation, out, timing, notes, watch, made)
+        metrics = evaluate(module, sequence, state, evaluation, out, timing, notes, watch, made)
     _print_summary(out, metrics)
     return metrics
 

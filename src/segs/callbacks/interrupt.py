@@ -26,6 +26,7 @@ from typing import Iterator
 
 import lightning as L
 
+from segs.callbacks.bridge import SlamBridge
 from segs.callbacks.checkpoint import save_atomic
 from segs.map_points import FILE_NAME as MAP_POINTS
 
@@ -117,10 +118,10 @@ class GracefulInterrupt(L.Callback):
         """Checkpoint, partial trajectory, resume hint; then ask the trainer to stop."""
         out = Path(self.dirpath or trainer.default_root_dir)
         self.checkpoint = save_atomic(trainer, out / "checkpoints" / "last.ckpt")
-        bridge = next((c for c in trainer.callbacks if hasattr(c, "write_partial_trajectory")), None)
+        bridge = next((c for c in trainer.callbacks if isinstance(c, SlamBridge)), None)
         if bridge is not None:
-            bridge.write_partial_trajectory(out / "trajectory_partial.txt")
-            bridge.map_points.write(out / MAP_POINTS)
+            bridge.run.write_partial_trajectory(out / "trajectory_partial.txt")
+            bridge.run.map_points.write(out / MAP_POINTS)
         print(
             f"segs: interrupted at step {trainer.global_step}; checkpoint {self.checkpoint}\n"
             f"segs: resume with the same command plus  ckpt_path={self.checkpoint}",

@@ -1,16 +1,17 @@
-"""The frontend in its own process: SLAM beside mapping, on another core.
+"""Frame sources whose frontend runs in a child process: SLAM beside mapping, on another core.
 
 gtsam and the ORB frontend's Python keep the GIL, so a tracking thread beside training slows
 both; in a child process the frontend uses its own core and the mapper receives its MapUpdates
 through a queue, as ORB-SLAM's tracking / local-mapping threads hand keyframes to a renderer.
 
-`FrontendProcess` is a Frontend whose frames are read and tracked by the child, which owns the
-sequence: the parent never calls process() (it raises); it starts the child, polls, and reads
-trajectory / keyframes / lost frames from what the child reported. Two pacings:
+`ProcessSource` is a frame source (segs.pipeline.sources) whose frames are read and tracked by the
+child, which owns the sequence and runs the frame loop (segs.pipeline.loop) on them; the parent
+starts the child, takes its reports (`track`) and answers for the trajectory / keyframes / lost
+frames from them. Two pacings:
 
-- "process": every frame, as fast as the frontend tracks (deterministic in what it computes,
-  only the moment updates arrive varies);
-- "live": frames at their timestamps (wall clock from the first one, x `rate`), like a camera.
+- `ProcessSource` ("process"): every frame, as fast as the frontend tracks (deterministic in what
+  it computes, only the moment updates arrive varies);
+- `LiveSource` ("live"): frames at their timestamps (wall clock from the first one, x `rate`), like a camera.
   When tracking falls behind, the frames whose time has passed are dropped and the newest one is
   tracked (a live camera driver delivers the latest image); they are counted in dropped_frames(),
   never invented poses.
@@ -18,7 +19,7 @@ trajectory / keyframes / lost frames from what the child reported. Two pacings:
 The child is `python -m segs.pipeline.process` (pickles on stdin / stdout, like ba_process), so it
 imports only the frontend's modules (no torch, no Lightning). Checkpoints: state_dict() asks the
 child for its frontend state at a frame boundary and keeps every update the mapper has not
-polled yet beside it, so a resumed run loses and repeats nothing.
+taken yet beside it, so a resumed run loses and repeats nothing.
 """
 from __future__ import annotations
 
@@ -29,51 +30,53 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 
 from segs import process_settings
-from segs.data.frame import Frame, Sequence
+from segs.data.frame import Sequence
 from segs.errors import ConfigError
-from segs.pipeline.runner import iterate_in_process
-from segs.slam.base import FrameResult, Frontend, MapUpdate, prepared_seconds
+from segs.pipeline.loop import FrameLoop
+from segs.pipeline.readers import CameraFrames
+from segs.pipeline.sources import FrameSource
+from segs.slam.base import Frontend, MapUpdate
 
-MODES = ("interleaved", "process", "live")
 
-
-class FrontendProcess(Frontend):
-    """A frontend (built by make_frontend() in the child) tracking `sequence` in a child process.
+class ProcessSource(FrameSource):
+    """A frontend (built by make_frontend() in the child) tracking every frame of `sequence` in a
+    child process, at its own pace.
 
     make_frontend: picklable callable -> Frontend (e.g. the slam config's partial with camera and
-    sensor bound); mode: "process" | "live"; rate: live playback speed (1 = real time);
-    uses_ground_truth_poses: what the frontend built by make_frontend says of itself.
-    Call start() (or poll(), which starts it); finish() waits for the end of the sequence.
+    sensor bound); uses_ground_truth_poses: what the frontend built by make_frontend says of
+    itself. The child starts with the first track() (or start()); finish() waits for the end of
+    the sequence.
     """
 
-    def __init__(self, make_frontend: Callable[[], Frontend], sequence: Sequence, mode: str = "process",
-                 rate: float = 1.0, uses_ground_truth_poses: bool = False):
-        if mode not in ("process", "live"):
-            raise ConfigError(f"slam_mode={mode!r}: a frontend process runs in mode process or live")
+    mode, paced = "process", False
+
+    def __init__(self, make_frontend: Callable[[], Frontend], sequence: Sequence, uses_ground_truth_poses: bool = False,
+                 rate: float = 1.0):  # fmt: skip
+        super().__init__(sequence)
         if not rate > 0:
             raise ConfigError(f"slam_rate={rate!r} must be > 0")
-        self.make_frontend, self.sequence, self.mode, self.rate = make_frontend, sequence, mode, float(rate)
+        self.make_frontend, self.rate = make_frontend, float(rate)
         self.uses_ground_truth_poses = bool(uses_ground_truth_poses)
         self._proc: subprocess.Popen | None = None
         self._inbox: queue.Queue = queue.Queue()  # messages read from the child, in order
-        self._buffer: list[tuple] = []  # messages taken from the inbox, not yet given to poll()
+        self._buffer: list[tuple] = []  # messages taken from the inbox, not yet returned by track()
         self._resume: dict | None = None
         self._reset()
 
     def _reset(self) -> None:
-        self.cursor = 0  # next frame the child will read
+        self._cursor = 0  # next frame the child will read
         self._traj: dict[int, np.ndarray] = {}  # frame -> w2c as tracked (final poses after finish)
         self._lost: set[int] = set()
         self._dropped: list[int] = []
         self._kf_frames: dict[int, int] = {}
         self._final: dict | None = None  # the child's closing report
-        self.process_seconds = 0.0  # seconds the child spent in frontend.process
-        self.frames_done = 0
+        self._process_seconds = 0.0  # seconds the child spent in frontend.process
+        self._frames_done = 0
         self.wall_seconds = 0.0  # the child's time from its first frame to the end of finish()
 
     # ------------------------------------------------------------------ child control
@@ -84,7 +87,7 @@ class FrontendProcess(Frontend):
         self._proc = subprocess.Popen([sys.executable, "-m", "segs.pipeline.process"], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE)
         state = self._resume.get("frontend") if self._resume else None
-        self._send(("start", self.make_frontend, self.sequence, self.mode, self.rate, self.cursor, state))
+        self._send(("start", self.make_frontend, self.sequence, self.mode, self.rate, self._cursor, state))
         threading.Thread(target=self._read, name="segs-frontend-reader", daemon=True).start()
 
     def _send(self, msg: tuple) -> None:
@@ -128,9 +131,9 @@ class FrontendProcess(Frontend):
                 self._traj[index] = w2c
             self._kf_frames = kf_frames
             self._dropped.extend(dropped)
-            self.process_seconds += seconds
-            self.frames_done += 1
-            self.cursor = index + 1
+            self._process_seconds += seconds
+            self._frames_done += 1
+            self._cursor = index + 1
             return update
         if msg[0] == "done":
             _, update, report = msg
@@ -138,23 +141,34 @@ class FrontendProcess(Frontend):
             self._traj, self._lost = report["trajectory"], set(report["lost"])
             self._kf_frames, self.wall_seconds = report["keyframe_frames"], report["wall_s"]
             self._dropped.extend(report["dropped"])
-            self.cursor = len(self.sequence)
+            self._cursor = len(self.sequence)
             return update
         raise RuntimeError(f"unexpected message from the slam frontend process: {msg[0]!r}")
 
-    # ------------------------------------------------------------------ Frontend API
-    def process(self, frame: Frame) -> FrameResult:
-        raise TypeError("FrontendProcess reads and tracks its frames in the child process; "
-                        "call poll() / finish() instead of process()")
+    # ------------------------------------------------------------------ FrameSource API
+    @property
+    def cursor(self) -> int:
+        return self._cursor
 
-    def poll(self, timeout: float = 0.0) -> MapUpdate:
-        """Everything the child reported since the previous poll; with a timeout > 0 and nothing
-        reported yet, waits up to that many seconds for the first message."""
+    @property
+    def frames_done(self) -> int:
+        """Frames the child tracked (live: fewer than the sequence's when frames were dropped)."""
+        return self._frames_done
+
+    @property
+    def process_seconds(self) -> float:
+        """The child's own time in frontend.process."""
+        return self._process_seconds
+
+    def track(self, frames: int = 1, timeout: float = 0.0) -> MapUpdate:
+        """Everything the child reported since the previous call (`frames` does not apply: the
+        child tracks at its own pace); with a timeout > 0 and nothing reported yet, waits up to
+        that many seconds for the first message."""
         self.start()
         up = MapUpdate()
         for msg in self._buffer:
             up = up.merge(self._apply(msg))
-        if timeout > 0 and not self._buffer and not self.done():
+        if timeout > 0 and not self._buffer and not self.exhausted():
             msg = self._next(block=True, timeout=timeout)
             if msg is not None:
                 up = up.merge(self._apply(msg))
@@ -163,15 +177,15 @@ class FrontendProcess(Frontend):
             up = up.merge(self._apply(msg))
         return up
 
-    def done(self) -> bool:
-        """The child has tracked every frame and finished (its final update is polled)."""
+    def exhausted(self) -> bool:
+        """The child has tracked every frame and finished (its final update is taken)."""
         return self._final is not None
 
     def finish(self) -> MapUpdate:
-        """Wait for the end of the sequence and the frontend's finish(); everything not polled."""
-        up = self.poll()
-        while not self.done():
-            up = up.merge(self.poll(timeout=0.1))
+        """Wait for the end of the sequence and the frontend's finish(); everything not taken."""
+        up = self.track()
+        while not self.exhausted():
+            up = up.merge(self.track(timeout=0.1))
         return up
 
     def trajectory(self) -> dict[int, np.ndarray]:
@@ -191,7 +205,7 @@ class FrontendProcess(Frontend):
     def stats(self) -> dict[str, Any]:
         """The frontend's own statistics (after the end) and the process' figures."""
         out = dict(self._final["stats"]) if self._final else {}
-        out.update(mode=self.mode, frames_dropped=len(self._dropped), child_process_s=self.process_seconds,
+        out.update(mode=self.mode, frames_dropped=len(self._dropped), child_process_s=self._process_seconds,
                    child_wall_s=self.wall_seconds)
         return out
 
@@ -217,7 +231,7 @@ class FrontendProcess(Frontend):
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        """The child's frontend state at a frame boundary, and every update not polled yet."""
+        """The child's frontend state at a frame boundary, and every update not taken yet."""
         self.start()
         if self._proc is None:  # a resumed run whose sequence was already done
             inner = self._resume.get("frontend") if self._resume else None
@@ -227,9 +241,9 @@ class FrontendProcess(Frontend):
                 self._buffer.append(msg)  # reported before the state: the mapper gets them later
             inner = msg[1] if msg is not None else None
         return {"format": "segs.process.v1", "frontend": inner, "pending": list(self._buffer),
-                "cursor": self.cursor, "trajectory": dict(self._traj), "lost": sorted(self._lost),
+                "cursor": self._cursor, "trajectory": dict(self._traj), "lost": sorted(self._lost),
                 "dropped": list(self._dropped), "keyframe_frames": dict(self._kf_frames),
-                "process_seconds": self.process_seconds, "frames_done": self.frames_done,
+                "process_seconds": self._process_seconds, "frames_done": self._frames_done,
                 "final": self._final}
 
     def load_state_dict(self, state: dict) -> None:
@@ -242,118 +256,27 @@ class FrontendProcess(Frontend):
         self._resume = state
         self._traj, self._lost = dict(state["trajectory"]), set(state["lost"])
         self._dropped, self._kf_frames = list(state["dropped"]), dict(state["keyframe_frames"])
-        self.process_seconds, self.frames_done = state["process_seconds"], state["frames_done"]
+        self._process_seconds, self._frames_done = state["process_seconds"], state["frames_done"]
         self._final = state["final"]
         self._buffer = list(state["pending"])
         # the child resumes after the frames of the buffered messages (already tracked)
-        self.cursor = int(state["cursor"])
+        self._cursor = int(state["cursor"])
         for msg in self._buffer:
             if msg[0] == "frame":
-                self.cursor = max(self.cursor, msg[1] + 1)
+                self._cursor = max(self._cursor, msg[1] + 1)
+
+
+
+
+class LiveSource(ProcessSource):
+    """A ProcessSource whose child reads the frames like a camera: at their timestamps x `rate`
+    (1 = real time), the newest when tracking is behind (the others dropped, see the module
+    docstring)."""
+
+    mode = "live"
 
 
 # ---------------------------------------------------------------------- child side
-def _next_live(timestamps: np.ndarray, i: int, t0: float, ts0: float, rate: float) -> tuple[int, list[int]]:
-    """Live pacing: wait for frame i's time; if later frames' times have passed already, the
-    newest of them is due and the ones before it are dropped. -> (frame due, dropped)."""
-    now = (time.perf_counter() - t0) * rate + ts0
-    if timestamps[i] > now:
-        time.sleep((timestamps[i] - now) / rate)
-        return i, []
-    newest = int(np.searchsorted(timestamps, now, side="right")) - 1
-    newest = max(i, min(newest, len(timestamps) - 1))
-    return newest, list(range(i, newest))
-
-
-def _read_frames(sequence: Sequence, prepare: Callable[[Frame], Any], timestamps: np.ndarray, start: int,
-                 live: bool, rate: float, stopped: Callable[[], bool] = lambda: False) -> Iterator[tuple[Any, list[int]]]:
-    """(prepared frame, frames dropped before it) from `start` on: every frame, or live the newest
-    at rate x the wall clock since the first."""
-    n, i = len(sequence), start
-    t0 = time.perf_counter()
-    ts0 = float(timestamps[i]) if i < n else 0.0
-    while i < n and not stopped():
-        dropped: list[int] = []
-        if live:
-            i, dropped = _next_live(timestamps, i, t0, ts0, rate)
-        yield prepare(sequence[i]), dropped
-        i += 1
-
-
-class _FrameSource:
-    """The child's frames, read (decoded, depth registered) and prepared (the frontend's
-    `prepare`: feature extraction) ahead of the tracking of the previous frame: in a process of
-    their own when the frontend has a picklable `preparer` (no interpreter lock shared with
-    tracking), else in a background thread (OpenCV's decoders and ORB release the GIL).
-
-    process: every frame in order, up to `ahead` read in advance. live: a camera; frame i is read
-    at its time (rate x wall clock) into a one-frame slot; a frame still in the slot when the next
-    arrives, or whose time passed before it could be read, is dropped (the tracker always gets
-    the newest image, as from a live driver).
-    """
-
-    def __init__(self, sequence: Sequence, start: int, live: bool, rate: float, ahead: int = 4,
-                 prepare: Callable[[Frame], Any] = lambda frame: frame,
-                 preparer: Callable[[Frame], Any] | None = None):
-        self.sequence, self.live, self.rate, self.prepare = sequence, live, rate, prepare
-        self.timestamps = np.asarray(sequence.timestamps, np.float64)
-        self._cv = threading.Condition()
-        self._frames: list[Frame] = []
-        self._dropped: list[int] = []
-        self._ended = False
-        self._error: BaseException | None = None
-        self._ahead = 1 if live else ahead
-        self._stop = False
-        if preparer is not None:  # the reader process runs ahead by itself; the slot logic stays here
-            frames = iterate_in_process(_read_frames, (sequence, preparer, self.timestamps, start, live, rate),
-                                        0 if live else self._ahead)
-        else:
-            frames = _read_frames(sequence, prepare, self.timestamps, start, live, rate, lambda: self._stop)
-        threading.Thread(target=self._deliver, args=(frames,), name="segs-frames", daemon=True).start()
-
-    def _deliver(self, frames: Iterator[tuple[Any, list[int]]]) -> None:
-        try:
-            for frame, dropped in frames:
-                with self._cv:
-                    self._dropped.extend(dropped)
-                    if self.live and self._frames:  # the tracker did not take the previous one
-                        self._dropped.extend(f.index for f in self._frames)
-                        self._frames.clear()
-                    while not self.live and len(self._frames) >= self._ahead and not self._stop:
-                        self._cv.wait()
-                    if self._stop:
-                        break
-                    self._frames.append(frame)
-                    self._cv.notify_all()
-        except BaseException as exc:  # raised in the tracker's thread by next()
-            self._error = exc
-        finally:
-            close = getattr(frames, "close", None)
-            if close is not None:
-                close()  # a reader process stops here
-        with self._cv:
-            self._ended = True
-            self._cv.notify_all()
-
-    def next(self) -> tuple[Any, list[int]]:
-        """The next frame to track, as prepared (None after the last), and the frames dropped
-        before it."""
-        with self._cv:
-            while not self._frames and not self._ended:
-                self._cv.wait()
-            if self._error is not None:
-                raise self._error
-            frame = self._frames.pop(0) if self._frames else None
-            dropped, self._dropped = self._dropped, []
-            self._cv.notify_all()
-        return frame, dropped
-
-    def stop(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._cv.notify_all()
-
-
 def _private_pipes():
     """The parent's command and message pipes (this process's stdin / stdout) moved to descriptors
     of their own, with stdin then /dev/null and stdout stderr: processes started from here (the
@@ -404,9 +327,12 @@ def _serve() -> None:
 
 def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, cursor: int,
            commands: queue.Queue, send) -> None:
+    """The frame loop over the camera's frames, one ("frame", ...) message per frame, then the
+    frontend's finish and ("done", update, report)."""
     t0 = time.perf_counter()
-    source = _FrameSource(sequence, int(cursor), mode == "live", rate, prepare=frontend.prepare,
+    camera = CameraFrames(sequence, int(cursor), mode == "live", rate, prepare=frontend.prepare,
                           preparer=frontend.preparer())
+    loop = FrameLoop(frontend, iter(camera))
 
     def serve_commands(block: bool) -> bool:
         """Answer pending commands; False when the parent asks the child to end."""
@@ -422,22 +348,17 @@ def _track(frontend: Frontend, sequence: Sequence, mode: str, rate: float, curso
 
     while True:
         if not serve_commands(block=False):
-            source.stop()
+            camera.stop()
             return
-        frame, dropped = source.next()
-        if frame is None:
-            tail = dropped
+        tracked = loop.step()
+        if tracked is None:
             break
-        ts = time.perf_counter()
-        res = frontend.process(frame)
-        # the frame's own cost: tracking plus the features the source built ahead (their wall
-        # time, kept on the prepared frame), as when process() builds them
-        seconds = time.perf_counter() - ts + prepared_seconds(frame)
-        send(("frame", frame.index, res.w2c, frontend.poll(), frontend.keyframe_frames(), seconds, dropped))
-    update = frontend.finish()
+        send(("frame", tracked.frame.index, tracked.result.w2c, loop.poll(), frontend.keyframe_frames(), tracked.seconds,
+              tracked.dropped))  # fmt: skip
+    update = loop.finish()
     report = {"trajectory": frontend.trajectory(), "lost": frontend.lost_frames(),
               "keyframe_frames": frontend.keyframe_frames(), "wall_s": time.perf_counter() - t0,
-              "dropped": tail, "stats": frontend.stats() if hasattr(frontend, "stats") else {}}
+              "dropped": camera.tail_dropped, "stats": frontend.stats() if hasattr(frontend, "stats") else {}}
     send(("done", update, report))
     while serve_commands(block=True):  # state requests until the parent closes
         pass

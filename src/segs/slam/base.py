@@ -12,6 +12,12 @@ import numpy as np
 
 from segs.data.frame import Frame
 
+# the one version of segs's checkpoint state (the bridge's run state, the frame source, the
+# frontends): plain arrays, numbers and containers, no pickled class instance. Earlier states
+# ("segs.orb.v1", "segs.orb.v2", "segs.process.v1", the bridge's before v3) are converted when
+# loaded (segs.slam.orb_state, segs.pipeline.legacy).
+STATE_FORMAT = "segs.state.v3"
+
 
 @dataclass
 class FrameResult:

@@ -258,8 +258,6 @@ MOVED_MODULES = {
     "segs.slam.local_mapping": "segs.slam.backend.local_mapping",
     "segs.slam.loop_closing": "segs.slam.backend.loop_closing",
     "segs.slam.ba_process": "segs.slam.backend.ba_process",
-    "segs.slam.process": "segs.pipeline.process",
-    "segs.slam.runner": "segs.pipeline.runner",
 }
 
 
