@@ -64,7 +64,7 @@ def one_run(seq, sensor: str, make_frontend, threaded: bool) -> dict:
         "tracking_p90_ms": float(np.percentile(t["track"], 90)),
         "tracking_cpu_ms": med(t["track_cpu"]),
         "mapping_ms_per_kf": med(t["mapping"]),
-        "local_ba_ms_per_kf": med(np.array(fe.mapper.ba_times) * 1e3),
+        "local_ba_ms_per_kf": med(np.array(fe.local_mapping.ba_times) * 1e3),
         "loop_ms_per_kf": med(t["loop"]),
         "end_to_end_fps": len(seq) / process_s,
         # threaded: process() returns before its keyframes are mapped; finish() drains the backlog

@@ -142,6 +142,7 @@ SLAM_LAYERS = (
     ("features",),  # per frame, ahead of tracking
     ("map", "estimation"),  # shared state; matching and optimisation shared by the stages
     ("tracking", "backend"),  # per frame; per keyframe
+    ("orb_state",),  # the ORB frontend's checkpoint state (every part's records as arrays)
     ("orb", "known_poses"),  # the frontends
 )
 

@@ -108,12 +108,12 @@ def test_monocular_local_bundle_adjustment_holds_the_scale():
     run_sequence(fe, seq)
     m = fe.map
     assert len(m.kfs) >= 3
-    _, fixed, points, *_ = fe.mapper._build_problem(sorted(m.kfs), 0)
+    _, fixed, points, *_ = fe.local_mapping._build_problem(sorted(m.kfs), 0)
     assert fixed == {m.origin_kf}
     c0 = m.kfs[m.origin_kf].center
     spread = lambda: np.median(np.linalg.norm(m.pos[points.pid] - c0, axis=1))  # noqa: E731
     before = spread()
-    fe.mapper.global_ba(None, iterations=10)
+    fe.local_mapping.global_ba(None, iterations=10)
     assert spread() == pytest.approx(before, rel=1e-6)
 
 

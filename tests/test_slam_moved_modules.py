@@ -1,5 +1,6 @@
-"""OrbFrontend checkpoints written before segs.slam's stages became subpackages still load: their
-blob pickles classes under the former module names (segs.slam.map, segs.slam.tracking, ...)."""
+"""OrbFrontend checkpoints written before segs.slam's stages became subpackages still load
+(converted to segs.state.v3): their blob pickles classes under the former module names
+(segs.slam.map, segs.slam.tracking, ...)."""
 from __future__ import annotations
 
 import contextlib
@@ -12,9 +13,11 @@ import types
 import numpy as np
 import pytest
 
+from conftest import orb_v2_state
 from segs.data.synthetic import SyntheticSequence
-from segs.pipeline.runner import run_sequence
-from segs.slam.orb import MOVED_MODULES, OrbFrontend
+from segs.pipeline.sources import run_sequence
+from segs.slam.orb import OrbFrontend
+from segs.slam.orb_state import MOVED_MODULES
 
 
 @contextlib.contextmanager
@@ -38,7 +41,7 @@ def test_a_checkpoint_naming_the_former_modules_loads_and_tracks_on(monkeypatch)
     fe = OrbFrontend(seq.camera, "rgbd")
     run_sequence(fe, seq, frames=range(6))
     with _former_module_names(monkeypatch):
-        state = fe.state_dict()
+        state = orb_v2_state(fe)
     blob = state["blob"]
     # the stream names the former modules, never the new ones
     for old in ("segs.slam.map", "segs.slam.vocabulary", "segs.slam.features", "segs.slam.frame_poses", "segs.slam.tracking"):

@@ -19,6 +19,7 @@ from segs.slam.estimation.matching import knn_hamming
 from segs.slam.backend.ba_process import BundleAdjusterProcess
 from segs.slam.estimation.optimize import (BundleAdjuster, Observations, PointSet, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
                                 refine_pose)
+from conftest import orb_v2_state
 from segs.slam.orb import OrbFrontend
 from segs.pipeline.sources import run_sequence
 from segs.slam.map.vocabulary import Vocabulary, bow_score
@@ -630,7 +631,7 @@ def test_triangulation_under_vocabulary_nodes_tracks_and_keeps_words():
     assert all(r.tracked for r in run.results) and len(fe.map.kfs) >= 2
     kf1, kf2 = (fe.map.kfs[k] for k in sorted(fe.map.kfs)[:2])
     assert len(kf1.words) == len(kf1.kp)
-    n1, n2 = fe.mapper._nodes(kf1, kf2)
+    n1, n2 = fe.local_mapping._nodes(kf1, kf2)
     assert np.array_equal(n1, kf1.words // 1000) and n2.max() < 10  # k = 10, depth 4: level-1 nodes
     assert fe.vocab.bow(kf1.words)[0].tolist() == fe.kfdb.bows[kf1.kf_id][0].tolist()
 
@@ -659,6 +660,7 @@ def _as_legacy_v1(state: dict) -> dict:
     from segs.slam.tracking.tracker import Tracker
 
     d = pickle.loads(state["blob"])
+    d["tracker"] = dict(d["tracker"])
     poses = d["tracker"].pop("poses")
     traj = {i: ("abs", None, p.w2c) if p.kf_id is None else ("kf", p.kf_id) if p.rel is None else ("rel", p.kf_id, p.rel)
             for i, p in poses.poses.items()}  # fmt: skip
@@ -688,10 +690,9 @@ def test_tracking_state_enum_round_trips_checkpoint():
     fe = OrbFrontend(seq.camera, "rgbd")
     run_sequence(fe, seq, frames=range(6))
     assert fe.tracker.state is TrackingState.OK
-    state = fe.state_dict()
-    assert state["format"] == "segs.orb.v2"
+    state = orb_v2_state(fe)
     new = OrbFrontend(seq.camera, "rgbd")
-    new.load_state_dict(state)
+    new.load_state_dict(fe.state_dict())
     assert new.tracker.state is TrackingState.OK
     old_fe = OrbFrontend(seq.camera, "rgbd")
     old_fe.load_state_dict(_as_legacy_v1(state))
@@ -761,4 +762,4 @@ def test_triangulation_parallax_per_sensor():
     mapping = {"min_parallax_deg": 1.0, "min_parallax_deg_mono": 3.0}
     for sensor, deg in (("mono", 3.0), ("rgbd", 1.0)):
         fe = OrbFrontend(seq.camera, sensor, mapping=mapping)
-        assert fe.mapper.cos_parallax == pytest.approx(np.cos(np.radians(deg)))
+        assert fe.local_mapping.cos_parallax == pytest.approx(np.cos(np.radians(deg)))

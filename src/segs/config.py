@@ -47,6 +47,14 @@ def model_node(name: str = "segs", total_steps: int = 30000, **overrides) -> Dic
     return OmegaConf.create(OmegaConf.to_container(OmegaConf.merge(root, {"model": model}).model, resolve=True))
 
 
+def slam_frontend(camera, sensor: str, name: str = "orb", **overrides):
+    """The frontend of conf/slam/<name>.yaml for `camera` / `sensor`, with nested overrides
+    merged (tests, notebooks, benches): slam_frontend(cam, "rgbd", local_mapping={"ba_window": 5},
+    threaded=True). The YAML holds every default; the frontend's own builder checks the keys."""
+    node = OmegaConf.merge(OmegaConf.load(CONF_DIR / "slam" / f"{name}.yaml"), overrides)
+    return instantiate(node)(camera=camera, sensor=sensor)
+
+
 ALIGNMENTS = ("se3", "sim3", "none")
 
 

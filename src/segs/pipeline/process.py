@@ -40,7 +40,7 @@ from segs.errors import ConfigError
 from segs.pipeline.loop import FrameLoop
 from segs.pipeline.readers import CameraFrames
 from segs.pipeline.sources import FrameSource
-from segs.slam.base import Frontend, MapUpdate
+from segs.slam.base import STATE_FORMAT, Frontend, MapUpdate
 
 
 class ProcessSource(FrameSource):
@@ -231,7 +231,8 @@ class ProcessSource(FrameSource):
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
-        """The child's frontend state at a frame boundary, and every update not taken yet."""
+        """The child's frontend state at a frame boundary, every report not taken yet and what
+        the child reported so far, as arrays (format segs.state.v3)."""
         self.start()
         if self._proc is None:  # a resumed run whose sequence was already done
             inner = self._resume.get("frontend") if self._resume else None
@@ -240,25 +241,30 @@ class ProcessSource(FrameSource):
             while (msg := self._next(block=True)) is not None and msg[0] != "state":
                 self._buffer.append(msg)  # reported before the state: the mapper gets them later
             inner = msg[1] if msg is not None else None
-        return {"format": "segs.process.v1", "frontend": inner, "pending": list(self._buffer),
-                "cursor": self._cursor, "trajectory": dict(self._traj), "lost": sorted(self._lost),
-                "dropped": list(self._dropped), "keyframe_frames": dict(self._kf_frames),
+        return {"format": STATE_FORMAT, "mode": self.mode, "frontend": inner, "pending": [_message_state(m) for m in self._buffer],
+                "cursor": self._cursor, "trajectory": _poses_state(self._traj), "lost": np.array(sorted(self._lost), np.int64),
+                "dropped": np.array(self._dropped, np.int64), "keyframe_frames": _ints_state(self._kf_frames),
                 "process_seconds": self._process_seconds, "frames_done": self._frames_done,
-                "final": self._final}
+                "final": None if self._final is None else _report_state(self._final)}  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
-        if state.get("format") != "segs.process.v1":
-            raise ConfigError("slam: checkpoint state is not a frontend-process state (was it saved with "
-                              "slam_mode=interleaved?)")
+        if state.get("format") == "segs.process.v1":  # before segs.state.v3: pickled updates, no mode
+            state = _from_process_v1(state, self.mode)
+        if state.get("format") != STATE_FORMAT or "pending" not in state:
+            raise ConfigError(f"slam: the checkpoint's frame source state is {state.get('format')!r}, not a frontend-process "
+                              "state; resume with the same slam_mode")  # fmt: skip
+        if state["mode"] != self.mode:
+            raise ConfigError(f"slam: the checkpoint's frontend ran with slam_mode={state['mode']}, this run with "
+                              f"slam_mode={self.mode}; resume with the same slam_mode")  # fmt: skip
         if self._proc is not None:
             raise RuntimeError("load_state_dict before the frontend process starts")
         self._reset()
         self._resume = state
-        self._traj, self._lost = dict(state["trajectory"]), set(state["lost"])
-        self._dropped, self._kf_frames = list(state["dropped"]), dict(state["keyframe_frames"])
-        self._process_seconds, self._frames_done = state["process_seconds"], state["frames_done"]
-        self._final = state["final"]
-        self._buffer = list(state["pending"])
+        self._traj, self._lost = _poses_from(state["trajectory"]), set(state["lost"].tolist())
+        self._dropped, self._kf_frames = state["dropped"].tolist(), _ints_from(state["keyframe_frames"])
+        self._process_seconds, self._frames_done = float(state["process_seconds"]), int(state["frames_done"])
+        self._final = None if state["final"] is None else _report_from(state["final"])
+        self._buffer = [_message_from(m) for m in state["pending"]]
         # the child resumes after the frames of the buffered messages (already tracked)
         self._cursor = int(state["cursor"])
         for msg in self._buffer:
@@ -266,6 +272,61 @@ class ProcessSource(FrameSource):
                 self._cursor = max(self._cursor, msg[1] + 1)
 
 
+# ---------------------------------------------------------------------- the state's arrays
+def _poses_state(poses: dict[int, np.ndarray]) -> dict:
+    return {"frame": np.array(list(poses), np.int64), "w2c": np.array(list(poses.values()), np.float64).reshape(-1, 4, 4)}
+
+
+def _poses_from(state: dict) -> dict[int, np.ndarray]:
+    return {k: w.copy() for k, w in zip(state["frame"].tolist(), state["w2c"])}
+
+
+def _ints_state(d: dict[int, int]) -> dict:
+    return {"key": np.array(list(d), np.int64), "value": np.array(list(d.values()), np.int64)}
+
+
+def _ints_from(state: dict) -> dict[int, int]:
+    return dict(zip(state["key"].tolist(), state["value"].tolist()))
+
+
+def _report_state(r: dict) -> dict:
+    """The child's closing report (trajectory, lost, keyframes, wall time, dropped, stats)."""
+    return {"trajectory": _poses_state(r["trajectory"]), "lost": np.array(r["lost"], np.int64),
+            "keyframe_frames": _ints_state(r["keyframe_frames"]), "wall_s": float(r["wall_s"]),
+            "dropped": np.array(r["dropped"], np.int64), "stats": dict(r["stats"])}  # fmt: skip
+
+
+def _report_from(state: dict) -> dict:
+    return {"trajectory": _poses_from(state["trajectory"]), "lost": state["lost"].tolist(),
+            "keyframe_frames": _ints_from(state["keyframe_frames"]), "wall_s": state["wall_s"],
+            "dropped": state["dropped"].tolist(), "stats": dict(state["stats"])}  # fmt: skip
+
+
+def _message_state(msg: tuple) -> dict:
+    """A ("frame", ...) or ("done", ...) message of the child as arrays."""
+    if msg[0] == "frame":
+        _, index, w2c, update, kf_frames, seconds, dropped = msg
+        return {"kind": "frame", "index": int(index), "w2c": w2c, "update": update.state_dict(),
+                "keyframe_frames": _ints_state(kf_frames), "seconds": float(seconds), "dropped": np.array(dropped, np.int64)}  # fmt: skip
+    _, update, report = msg
+    return {"kind": "done", "update": update.state_dict(), "report": _report_state(report)}
+
+
+def _message_from(state: dict) -> tuple:
+    if state["kind"] == "frame":
+        return ("frame", state["index"], state["w2c"], MapUpdate.from_state(state["update"]), _ints_from(state["keyframe_frames"]),
+                state["seconds"], state["dropped"].tolist())  # fmt: skip
+    return ("done", MapUpdate.from_state(state["update"]), _report_from(state["report"]))
+
+
+def _from_process_v1(state: dict, mode: str) -> dict:
+    """A "segs.process.v1" state (pickled messages and MapUpdates; no slam_mode: this run's is
+    assumed) in the v3 layout; its frontend state is converted by the frontend in the child."""
+    return {"format": STATE_FORMAT, "mode": mode, "frontend": state["frontend"], "pending": [_message_state(m) for m in state["pending"]],
+            "cursor": state["cursor"], "trajectory": _poses_state(state["trajectory"]), "lost": np.array(state["lost"], np.int64),
+            "dropped": np.array(state["dropped"], np.int64), "keyframe_frames": _ints_state(state["keyframe_frames"]),
+            "process_seconds": state["process_seconds"], "frames_done": state["frames_done"],
+            "final": None if state["final"] is None else _report_state(state["final"])}  # fmt: skip
 
 
 class LiveSource(ProcessSource):
