@@ -32,9 +32,9 @@ _harness.apply_process_settings()  # before torch loads
 
 import numpy as np
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
 from segs.data.tum import TumSequence
-from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 
 ROOT = _harness.ROOT
@@ -107,7 +107,7 @@ def bench(name, seq, sensor, make_frontend, runs, threaded_too=True) -> dict:
 
 def frontend_factory(camera, sensor: str, **kwargs):
     """threaded -> a new OrbFrontend with the frontend defaults and `kwargs` groups."""
-    return lambda threaded: OrbFrontend(camera, sensor, threaded=threaded, **kwargs)
+    return lambda threaded: slam_frontend(camera, sensor, threaded=threaded, **kwargs)
 
 
 def experiment(name: str, overrides: list[str]):

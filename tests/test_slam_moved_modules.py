@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from conftest import orb_v2_state
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
 from segs.pipeline.sources import run_sequence
-from segs.slam.orb import OrbFrontend
 from segs.slam.orb_state import MOVED_MODULES
 
 
@@ -38,7 +38,7 @@ def _former_module_names(monkeypatch):
 
 def test_a_checkpoint_naming_the_former_modules_loads_and_tracks_on(monkeypatch):
     seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     run_sequence(fe, seq, frames=range(6))
     with _former_module_names(monkeypatch):
         state = orb_v2_state(fe)
@@ -50,7 +50,7 @@ def test_a_checkpoint_naming_the_former_modules_loads_and_tracks_on(monkeypatch)
     with pytest.raises((ModuleNotFoundError, AttributeError)):
         pickle.loads(blob)  # what the plain unpickler makes of it
 
-    old_fe = OrbFrontend(seq.camera, "rgbd")
+    old_fe = slam_frontend(seq.camera, "rgbd")
     old_fe.load_state_dict(state)
     assert type(old_fe.map).__module__ == "segs.slam.map.map"
     assert old_fe.keyframe_frames() == fe.keyframe_frames()

@@ -29,16 +29,16 @@ class KnownPosesFrontend(Frontend):
     triangulation checks; stereo_num_disparities: SGBM search range (multiple of 16);
     max_hamming: largest descriptor distance of a match with the previous keyframe;
     point_source: "orb" (keypoints, like an indirect SLAM's map) or "grid" (every grid_stride-th
-    pixel with depth, RGB-D / stereo only: dense structure for texture-poor scenes).
+    pixel with depth, RGB-D / stereo only: dense structure for texture-poor scenes). Every value
+    is conf/slam/known_poses.yaml's (segs.config.slam_frontend(camera, sensor, "known_poses")).
     """
 
     uses_ground_truth_poses = True
 
-    def __init__(self, camera: Camera, sensor: str, keyframe_every: int = 10, kf_translation: float = 0.1,
-                 kf_rotation_deg: float = 10.0, n_features: int = 1000, fast_threshold: int = 7,
-                 depth_range: tuple[float, float] = (0.1, 8.0), max_reproj_px: float = 2.0,
-                 min_parallax_deg: float = 1.0, stereo_num_disparities: int = 64, max_hamming: int = 50,
-                 point_source: str = "orb", grid_stride: int = 8):  # fmt: skip
+    def __init__(self, camera: Camera, sensor: str, *, keyframe_every: int, kf_translation: float, kf_rotation_deg: float,
+                 n_features: int, fast_threshold: int, depth_range: tuple[float, float], max_reproj_px: float,
+                 min_parallax_deg: float, stereo_num_disparities: int, max_hamming: int, point_source: str,
+                 grid_stride: int):  # fmt: skip
         if keyframe_every < 1:
             raise ConfigError(f"slam.keyframe_every={keyframe_every} is out of range: expected >= 1")
         if n_features < 1:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import time
-from types import SimpleNamespace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -51,27 +50,26 @@ class OrbFrontend(Frontend):
     """ORB-SLAM style frontend for "mono", "stereo" and "rgbd" sequences.
 
     camera: intrinsics of the (undistorted / rectified) images; sensor: "mono" | "stereo" | "rgbd";
-    features, tracking, init, mapping, loop, matching: parameter groups (see segs.slam.config and
-    conf/slam/orb.yaml); threaded: mapping in a background thread; seed: RANSAC seeds;
-    final_global_ba: a global bundle adjustment in finish(); verbose: log events.
+    features, tracking, init, local_mapping, loop, matching: parameter groups (mappings with every
+    key of conf/slam/orb.yaml's, typed by segs.slam.config.OrbConfig); threaded: mapping in a
+    background thread; seed: RANSAC seeds; final_global_ba: a global bundle adjustment in finish();
+    verbose: log events. segs.config.slam_frontend builds one from the YAML.
     """
 
-    def __init__(self, camera: Camera, sensor: str, features: Mapping | None = None,
-                 tracking: Mapping | None = None, init: Mapping | None = None,
-                 mapping: Mapping | None = None, loop: Mapping | None = None, matching: Mapping | None = None,
-                 threaded: bool = False,
-                 seed: int = 0, final_global_ba: bool = False, verbose: bool = False):
+    def __init__(self, camera: Camera, sensor: str, *, features: Mapping, tracking: Mapping, init: Mapping,
+                 local_mapping: Mapping, loop: Mapping, matching: Mapping, threaded: bool, seed: int,
+                 final_global_ba: bool, verbose: bool):  # fmt: skip
         if sensor not in ("mono", "stereo", "rgbd"):
             raise ConfigError(f"slam: unknown sensor {sensor!r} (mono, stereo, rgbd)")
         if sensor == "stereo" and not camera.baseline:
             raise ConfigError("slam: stereo needs camera.baseline (metres) of the rectified pair")
 
-        self.cfg = SimpleNamespace()
-        for name, group in (("features", features), ("tracking", tracking), ("init", init),
-                            ("mapping", mapping), ("loop", loop), ("matching", matching)):
-            setattr(self.cfg, name, C.build(C.GROUPS[name], group, name))
-        self.camera, self.sensor, self.seed = camera, sensor, int(seed)
-        self.threaded, self.final_global_ba, self.verbose = bool(threaded), bool(final_global_ba), bool(verbose)
+        self.cfg: C.OrbConfig = C.build_frontend_config(C.OrbConfig, {
+            "threaded": threaded, "seed": seed, "final_global_ba": final_global_ba, "verbose": verbose,
+            "features": features, "tracking": tracking, "init": init, "local_mapping": local_mapping, "loop": loop,
+            "matching": matching})  # fmt: skip
+        self.camera, self.sensor, self.seed = camera, sensor, self.cfg.seed
+        self.threaded, self.final_global_ba, self.verbose = self.cfg.threaded, self.cfg.final_global_ba, self.cfg.verbose
         fc, tc = self.cfg.features, self.cfg.tracking
         baseline = camera.baseline if sensor == "stereo" else tc.rgbd_baseline
         bf = float(camera.fx * baseline)
@@ -86,9 +84,9 @@ class OrbFrontend(Frontend):
         self.builder = FrameBuilder(camera, sensor, self.extractor, bf, tc.max_depth, stereo, fc.grid_cell,
                                     tc.depth_edge_ratio)
         self.vocab = Vocabulary.load(self.cfg.loop.vocabulary)
-        if self.cfg.mapping.triangulate_node_level > len(self.vocab.levels):
-            raise ConfigError(f"slam.mapping.triangulate_node_level: at most the vocabulary's depth "
-                              f"{len(self.vocab.levels)}; got {self.cfg.mapping.triangulate_node_level}")
+        if self.cfg.local_mapping.triangulate_node_level > len(self.vocab.levels):
+            raise ConfigError(f"slam.local_mapping.triangulate_node_level: at most the vocabulary's depth "
+                              f"{len(self.vocab.levels)}; got {self.cfg.local_mapping.triangulate_node_level}")
         # threaded: bundle adjustment in a child process (gtsam holds the GIL while optimising)
         self.ba = (BundleAdjusterProcess if self.threaded else BundleAdjuster)(
             camera.K, bf if sensor != "mono" else 0.0, scales, ur_sigma=self.setup.ur_sigma)
@@ -104,7 +102,7 @@ class OrbFrontend(Frontend):
         """The components around one map (a new one, or a checkpoint's), each given what it uses."""
         self.map, self.kfdb, self.outbox = map_, kfdb, outbox
         cfg, setup = self.cfg, self.setup
-        self.local_mapping = LocalMapper(cfg.mapping, cfg.matching, setup, map_, self.vocab, kfdb, self.ba, outbox, self._log)
+        self.local_mapping = LocalMapper(cfg.local_mapping, cfg.matching, setup, map_, self.vocab, kfdb, self.ba, outbox, self._log)
         self.tracker = Tracker(cfg.tracking, cfg.init, cfg.matching, setup, map_, self.vocab, kfdb, self.local_mapping, outbox,
                                self.keyframes, self.seed, self._log)
         self.loop = LoopCloser(cfg.loop, setup, map_, kfdb, self.local_mapping, outbox, self.tracker.on_map_corrected,
