@@ -1,8 +1,11 @@
 """Ctrl-C / SIGTERM: stop cleanly, keep the work done so far, never a traceback.
 
-segs.train installs the handlers for the whole run (`with interrupt:`); used as a plain Lightning
-callback they are installed for the duration of fit. What a first signal does depends on the
-phase the run is in:
+This is the one place that handles them: segs.train makes it the first callback of every trainer
+and installs the handlers for the whole run (`with interrupt:`; used as a plain Lightning callback
+they are installed for the duration of fit). Lightning registers a SIGTERM handler of its own when
+fit starts (it would stop the loop with SIGTERMException, exit status 0); `on_train_start` takes
+both signals back, before the bridge tracks the first frames. What a first signal does depends
+on the phase the run is in:
 
 - "step" (training): the step in progress finishes, then checkpoints/last.ckpt (atomically:
   model, optimizer, keyframes, SLAM map and trajectory, step, RNG states),
@@ -108,6 +111,13 @@ class GracefulInterrupt(L.Callback):
     # -- Lightning hooks -------------------------------------------------------------------------
     def on_fit_start(self, trainer, pl_module) -> None:
         self.install("fit")
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        """Lightning has put its SIGTERM handler in front of this one (after on_fit_start, and
+        restores this one when fit ends): take both signals back for the training loop."""
+        if self._owner is not None:
+            for sig in EXIT_CODES:
+                signal.signal(sig, self._handler)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self.received is None or trainer.should_stop:
