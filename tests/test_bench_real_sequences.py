@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "bench" / "real_sequences.py"
 
@@ -15,6 +17,7 @@ def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, cwd=ROOT)
 
 
+@pytest.mark.slow
 def test_table_json_skipped_rows_and_compare(tmp_path):
     first = tmp_path / "first.json"
     run = _run("--only", "euroc", "kitti", "--shared-data", str(tmp_path / "absent"), "--out", str(first))

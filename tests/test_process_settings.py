@@ -50,6 +50,7 @@ def _env(**extra: str) -> dict:
     return {**env, "PYTHONPATH": str(ROOT / "src"), **extra}
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallinfo2 / mallopt")
 def test_importing_segs_changes_nothing_and_apply_sets_both_settings():
     res = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=_env(), timeout=300)
@@ -82,6 +83,7 @@ def test_segs_track_applies_the_settings(tmp_path):
     assert p["threads"]["OMP_WAIT_POLICY"] == "PASSIVE" and p["malloc"] == "kept"
 
 
+@pytest.mark.slow
 def test_segs_train_applies_the_settings_before_torch_loads(tmp_path):
     args = [*TINY, "trainer.max_steps=3", "eval.write_ply=false", "callbacks.periodic_checkpoint.every_n_steps=0",
             f"hydra.run.dir={tmp_path}"]

@@ -147,6 +147,7 @@ def test_an_interrupted_train_run_is_shown_from_its_last_checkpoint(train_run, t
         server.close()
 
 
+@pytest.mark.slow
 def test_a_folder_that_is_not_a_run_is_one_line_and_exit_2(tmp_path):
     with pytest.raises(DataError, match="not a run folder"):
         read_run(tmp_path)
@@ -155,6 +156,7 @@ def test_a_folder_that_is_not_a_run_is_one_line_and_exit_2(tmp_path):
     assert res.stderr.strip().count("\n") == 0 and "not a run folder" in res.stderr
 
 
+@pytest.mark.slow
 def test_a_given_busy_port_is_one_line_and_exit_2(track_run):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -183,6 +185,7 @@ def _pixels(png: bytes) -> np.ndarray:
     return image[int(0.2 * h): int(0.9 * h), int(0.06 * w): int(0.6 * w)]
 
 
+@pytest.mark.slow
 def test_a_browser_shows_the_map_growing_during_training(tmp_path):
     sync = _browser_or_skip()
     import lightning as L
