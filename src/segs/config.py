@@ -110,7 +110,7 @@ class PathsConfig:
     root_dir: str
     data_dir: str
     log_dir: str
-    output_dir: str
+    output_dir: str | None  # Hydra's run folder (None where a config is composed without one)
 
 
 @dataclass
