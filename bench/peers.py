@@ -295,7 +295,7 @@ def segs_child(args) -> None:
         "schedule_done": trainer.global_step / args.max_steps}))  # fmt: skip
 
 
-def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: int, record: dict, save) -> None:
+def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: int, record: dict, save, tries: int = TRIES) -> None:
     """Export, check the renderer, pilots, then every budget: OpenSplat and segs alternately."""
     split = export(name, work, seed)
     split_path = work / name / "split.json"
@@ -312,7 +312,7 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
         b = minutes * 60.0
         marks = [m * 60.0 for m in budgets if m < minutes]
         for method in ("opensplat", "segs") if i % 2 == 0 else ("segs", "opensplat"):
-            for attempt in range(TRIES):
+            for attempt in range(tries):
                 out = work / name / f"{method}_{minutes:g}min_{attempt}"
                 if method == "opensplat":
                     r = run_peer(binary, split, b, peer_runs, out, source)
@@ -456,6 +456,7 @@ def main() -> None:
     p.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
     p.add_argument("--budgets", type=float, nargs="+", default=None, help="minutes (default: each dataset's)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tries", type=int, default=TRIES, help="runs per method and budget at most (a run missing its budget is sized again)")
     p.add_argument("--work", type=Path, default=ROOT / "outputs" / "bench" / "peers")
     p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "peers.json")
     p.add_argument("--chart", type=Path, default=ROOT / "docs" / "performance" / "peers.png")
@@ -503,7 +504,7 @@ def measure(args) -> dict:
         args.out.write_text(json.dumps(record, indent=1))
 
     for name in args.datasets:
-        run_dataset(name, args.opensplat, args.budgets or list(DATASETS[name].budgets), args.work, args.seed, record, save)
+        run_dataset(name, args.opensplat, args.budgets or list(DATASETS[name].budgets), args.work, args.seed, record, save, args.tries)
     return record
 
 

@@ -178,10 +178,11 @@ def test_a_missing_binary_is_one_line_and_exit_2(tmp_path):
                     reason="needs the OpenSplat binary: OPENSPLAT=PATH (../shared/peers/opensplat/build.sh builds it)")
 def test_end_to_end_with_the_binary(tmp_path):
     out = tmp_path / "peers.json"
-    cmd = [sys.executable, str(ROOT / "bench" / "peers.py"), "--datasets", "sample", "--budgets", "0.4", "--work", str(tmp_path / "w"),
-           "--out", str(out), "--chart", str(tmp_path / "peers.png")]  # fmt: skip
+    cmd = [sys.executable, str(ROOT / "bench" / "peers.py"), "--datasets", "sample", "--budgets", "0.5", "--tries", "1",
+           "--work", str(tmp_path / "w"), "--out", str(out), "--chart", str(tmp_path / "peers.png")]  # fmt: skip
     subprocess.run(cmd, check=True, cwd=ROOT, capture_output=True)
     entry = json.loads(out.read_text())["datasets"][0]
     assert entry["renderer_check_db"] > 45
     methods = {r["method"] for r in entry["runs"]}
-    assert methods == {"opensplat", "segs"} and all(r["peak_rss_mb"] > 0 and r["points"][-1]["psnr"] > 10 for r in entry["runs"])
+    assert methods == {"opensplat", "segs"} and len(entry["runs"]) == 2
+    assert all(r["peak_rss_mb"] > 0 and r["points"][-1]["steps"] > 0 and 5 < r["points"][-1]["psnr"] < 60 for r in entry["runs"])

@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
+from segs.callbacks.checkpoint import DirectCheckpointIO
 from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
 from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
@@ -66,7 +67,8 @@ def build(cfg: DictConfig, session_start: float | None = None):
     callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
     callbacks.append(RunRecord(identity, session_start))
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir,
+                                     plugins=[DirectCheckpointIO()])  # fmt: skip
     return sequence, frontend, module, bridge, trainer
 
 
