@@ -9,6 +9,7 @@ loss), optimizer step. Prints one table (medians) and writes outputs/bench/train
     python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
     python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
     python bench/train_step.py --downscale 4   # the timed iterations at 1/4 size (coarse-to-fine's first phase)
+    python bench/train_step.py --models segs --variant model.k=5   # the defaults and a variant, timed alternately
 """
 from __future__ import annotations
 
@@ -97,6 +98,27 @@ def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, devi
     return med
 
 
+def interleaved(schedule: int, warmup: int, iters: int, backend: str, experiment: str, extra, variant, factor: int = 1) -> dict:
+    """Seconds per iteration of the SEGS defaults (+ extra) and of the same + variant, each warmed
+    up on its own `schedule` for `warmup` steps, then timed alternately (A B A B ...): medians,
+    and the ratio B / A of the medians."""
+    models = {}
+    for name, overrides in (("defaults", list(extra)), ("variant", list(extra) + list(variant))):
+        torch.manual_seed(0)
+        module = build("segs", schedule, backend, "cpu", experiment, overrides)
+        opt = make_adam(module.model.param_groups())
+        for s in range(warmup):
+            iteration(module, opt, s, False)
+        models[name] = (module, opt, [])
+    for i in range(iters):
+        for module, opt, rows in models.values():
+            rows.append(iteration(module, opt, warmup + i, True, factor))
+    out = {name: {"total": float(np.median([r["total"] for r in rows])), "gaussians": float(np.median([r["gaussians"] for r in rows])),
+                  "anchors": int(module.model.counts()["anchors"])} for name, (module, _, rows) in models.items()}  # fmt: skip
+    out["ratio"] = out["variant"]["total"] / out["defaults"]["total"]
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--schedule", type=int, default=3000, help="trainer.max_steps of the run being imitated")
@@ -108,8 +130,16 @@ def main() -> None:
     p.add_argument("--experiment", default="sample", help="+experiment=NAME (with slam=known_poses)")
     p.add_argument("--extra", nargs="*", default=[], help="more config overrides, e.g. data.frames=[100,250]")
     p.add_argument("--downscale", type=int, default=1, help="time the iterations at 1/N of the image size (warm-up at full size)")
+    p.add_argument("--variant", nargs="+", default=None, help="overrides of a SEGS variant timed alternately with the defaults")
     p.add_argument("--out", default=str(ROOT / "outputs" / "bench" / "train_step.json"))
     args = p.parse_args()
+    if args.variant:
+        res = interleaved(args.schedule, args.warmup, args.iters, args.backend, args.experiment, args.extra, args.variant, args.downscale)
+        print(f"medians of {args.iters} alternated iterations after {args.warmup} of a {args.schedule}-step schedule: defaults "
+              f"{1000 * res['defaults']['total']:.1f} ms ({res['defaults']['anchors']} anchors, {res['defaults']['gaussians']:.0f} drawn), "
+              f"{' '.join(args.variant)} {1000 * res['variant']['total']:.1f} ms ({res['variant']['anchors']} anchors, "
+              f"{res['variant']['gaussians']:.0f} drawn): ratio {res['ratio']:.3f}")  # fmt: skip
+        return
     results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra, args.downscale)
                for m in args.models}
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
