@@ -123,7 +123,7 @@ def export(name: str, work: Path, seed: int) -> dict:
     return split
 
 
-def test_view_source(split: dict):
+def view_source(split: dict):
     """(sequence, trajectory) of the split's dataset, for scoring in this process."""
     from segs.config import compose, make_sequence
 
@@ -220,14 +220,19 @@ def peer_seconds(n: int, startup: float, rates: dict[int, float]) -> float:
 
 
 def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:
-    """The largest n whose predicted time is <= AIM x budget (binary search); rate_factor scales
-    the measured rates (below 1 after the pilot alone: its first steps are its fastest)."""
+    """Iterations for AIM x budget: the step the latest run printed at that time when it ran that
+    long, else the largest n whose predicted time fits (peer_seconds, binary search); rate_factor
+    scales the measured rates (below 1 after the pilot alone: its first steps are its fastest)."""
+    target = AIM * budget_s
+    log = runs[-1]["steps"]
+    if log[-1][0] >= target:  # its own clock: steps slow down as it densifies
+        return max(next(int(s) for t, s in log if t >= target), 1)
     startup, rates = peer_rates(runs)
     rates = {p: r * rate_factor for p, r in rates.items()}
     lo, hi = 1, 10**6
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        lo, hi = (mid, hi) if peer_seconds(mid, startup, rates) <= AIM * budget_s else (lo, mid - 1)
+        lo, hi = (mid, hi) if peer_seconds(mid, startup, rates) <= target else (lo, mid - 1)
     return lo
 
 
@@ -299,7 +304,7 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
     """Export, check the renderer, pilots, then every budget: OpenSplat and segs alternately."""
     split = export(name, work, seed)
     split_path = work / name / "split.json"
-    source = test_view_source(split)
+    source = view_source(split)
     entry = {"dataset": name, "note": DATASETS[name].note, "train_views": len(split["train"]), "test_views": len(split["test"]),
              "points": split["points"], "crop": split["crop"], "renderer_check_db": check_renderer(binary, split, work / name),
              "runs": []}  # fmt: skip
@@ -349,50 +354,51 @@ def _budgets(entry: dict) -> list[float]:
     return sorted({r["budget_min"] for r in entry["runs"]})
 
 
+def _miss(run: dict) -> str:
+    """' *' when the run's time or schedule missed its budget after every try (fits)."""
+    return "" if fits(run, run["budget_s"]) else " *"
+
+
 def _k(n: float) -> str:
     return f"{n / 1000:.1f}k" if n >= 1000 else f"{n:.0f}"
 
 
-def table(entry: dict) -> str:
-    """Markdown: per budget both methods' PSNR / SSIM, seconds, steps, model size and peak RSS."""
-    head = ("| budget | OpenSplat PSNR / SSIM (std.) | s, iterations | Gaussians, MB | peak RSS MB | segs PSNR / SSIM | s, steps "
-            "(schedule) | anchors, Gaussians (active), MB | peak RSS MB | segs - OpenSplat |")  # fmt: skip
-    lines = [head, "|" + "---|" * 10]
-    finals = {m: [r for r in (_final(entry, m, b) for b in _budgets(entry)) if r] for m in ("opensplat", "segs")}
+def rows(entry: dict) -> list[str]:
+    """Markdown rows, one per budget: both methods' PSNR / SSIM, seconds, steps, size, peak RSS."""
+    out = []
     for minutes in _budgets(entry):
         p, s = _final(entry, "opensplat", minutes), _final(entry, "segs", minutes)
-        cells = [f"{minutes:g} min"]
+        cells = [f"{entry['dataset']}, {minutes:g} min"]
         if p:
             q = p["points"][-1]
-            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f} ({q['psnr_std']:.2f})", f"{q['seconds']:.0f}, {q['steps']:,}",
+            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f} ({q['psnr_std']:.2f})", f"{q['seconds']:.0f}{_miss(p)}, {q['steps']:,}",
                       f"{_k(q['gaussians'])}, {q['model_mb']:.1f}", f"{p['peak_rss_mb']:.0f}"]  # fmt: skip
         else:
             cells += ["-"] * 4
         if s:
             q = s["points"][-1]
-            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f}", f"{q['seconds']:.0f}, {q['steps']:,} ({s['max_steps']:,})",
+            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f}", f"{q['seconds']:.0f}{_miss(s)}, {q['steps']:,} ({s['max_steps']:,})",
                       f"{_k(q['anchors'])}, {_k(q['gaussians'])} ({_k(q['active'])}), {q['model_mb']:.1f}", f"{s['peak_rss_mb']:.0f}"]
         else:
             cells += ["-"] * 4
-        cells.append(f"{s['points'][-1]['psnr'] - p['points'][-1]['psnr']:+.2f} dB" if p and s else "-")
-        lines.append("| " + " | ".join(cells) + " |")
-    rss = {m: [r["peak_rss_mb"] for r in runs] for m, runs in finals.items()}
-    if rss["opensplat"] and rss["segs"]:
-        lines += ["", f"Peak RSS: OpenSplat {min(rss['opensplat']):.0f}-{max(rss['opensplat']):.0f} MB, segs "
-                      f"{min(rss['segs']):.0f}-{max(rss['segs']):.0f} MB ({max(rss['segs']) / max(rss['opensplat']):.2f}x at the most)."]
-    return "\n".join(lines)
+        cells.append(f"**{s['points'][-1]['psnr'] - p['points'][-1]['psnr']:+.2f}**" if p and s else "-")
+        out.append("| " + " | ".join(cells) + " |")
+    return out
 
 
 def report(record: dict) -> str:
-    """Every dataset's heading line and table, with the machine and the command."""
-    m = record["machine"]
-    out = [f"`{record['command']}` (commit {m['commit']}, {m['date']}; {m['cpu']}, {m['cores']} cores; OpenSplat {m['opensplat']}; "
-           f"load average before {m['load_before']}, after {m.get('load_after', '-')})."]  # fmt: skip
-    for e in record["datasets"]:
-        out += ["", f"**{e['dataset']}**: {e['note']}; {e['train_views']} training and {e['test_views']} test views, "
-                    f"{e['points']:,} initial points; render_native against OpenSplat's own --val-render image "
-                    f"{e['renderer_check_db']:.1f} dB.", "", table(e)]  # fmt: skip
-    return "\n".join(out)
+    """The machine and command, each dataset's views and renderer check, and one table."""
+    m, entries = record["machine"], record["datasets"]
+    head = (f"`{record['command']}` (commit {m['commit']}, {m['date']}; {m['cpu']}, {m['cores']} cores; OpenSplat {m['opensplat']}; "
+            f"load average before {m['load_before']}, after {m.get('load_after', '-')}). "  # fmt: skip
+            + "; ".join(f"{e['dataset']}: {e['train_views']} training / {e['test_views']} test views, {e['points']:,} initial points, "
+                        f"render_native against its --val-render {e['renderer_check_db']:.1f} dB" for e in entries) + ".")
+    table = ["| data, budget | OpenSplat PSNR / SSIM (std.) | s, iterations | Gaussians, MB | peak RSS MB | segs PSNR / SSIM | "
+             "s, steps (schedule) | anchors, Gaussians (active), MB | peak RSS MB | segs - OpenSplat dB |", "|" + "---|" * 10]
+    table += [row for e in entries for row in rows(e)]
+    note = ("s: wall seconds from launch; * outside -15 / +8 % of the budget (segs: or stopped before its schedule's end) after "
+            "the tries; std.: a correct 3D-GS render of OpenSplat's PLY; active: drawn with opacity > 0.005, mean over the test views.")
+    return "\n".join([head, "", *table, "", note])
 
 
 def chart(record: dict, path: Path) -> None:
@@ -476,7 +482,7 @@ def main() -> None:
     else:
         record = measure(args)
     chart(record, args.chart)
-    text = report(record) + f"\n\n![PSNR against wall seconds, both methods](performance/{args.chart.name})"
+    text = report(record) + f"\n\n![PSNR against wall seconds from launch, both methods](performance/{args.chart.name})"
     print(text)
     if args.write:
         write_between_markers(args.write, text)

@@ -124,6 +124,8 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     assert startup == pytest.approx(2.025) and rates == {0: pytest.approx(40.0)}
     assert peers.peer_seconds(n, startup, rates) <= peers.AIM * 60.0 < peers.peer_seconds(n + 1, startup, rates)
     assert n == int((peers.AIM * 60.0 - startup) * 40.0)  # all at 1/4 size
+    # a run that ran past the target: the step it had printed by then
+    assert peers.peer_iterations(20.0, [{"steps": log}]) == next(s for t, s in log if t >= peers.AIM * 20.0)
     long = peers.peer_iterations(600.0, [{"steps": log}])  # crosses into the slower phases
     assert peers.peer_phase(long) == 2 and peers.peer_seconds(long, startup, rates) <= peers.AIM * 600.0
     # segs: the previous run's steps per second after its startup
@@ -138,10 +140,11 @@ def _record() -> dict:
         point = {"seconds": seconds, "steps": 900, "psnr": psnr, "ssim": 0.85, "psnr_std": psnr - 2, "gaussians": 12000,
                  "anchors": 1200, "active": 6000.0, "model_mb": 1.5}  # fmt: skip
         early = {**point, "seconds": seconds / 2, "psnr": psnr - 1}
-        return {"budget_min": minutes, "method": method, "max_steps": 1000, "peak_rss_mb": rss, "points": [early, point]}
+        return {"budget_min": minutes, "budget_s": minutes * 60.0, "method": method, "max_steps": 1000, "schedule_done": 1.0,
+                "peak_rss_mb": rss, "points": [early, point]}  # fmt: skip
 
     entry = {"dataset": "sample", "note": "test", "train_views": 43, "test_views": 15, "points": 5000, "renderer_check_db": 52.9,
-             "runs": [run("opensplat", 1, 22.0, 58.0, 300.0), run("segs", 1, 23.5, 59.0, 540.0), run("opensplat", 2, 23.0, 115.0, 320.0),
+             "runs": [run("opensplat", 1, 22.0, 58.0, 300.0), run("segs", 1, 23.5, 59.0, 540.0), run("opensplat", 2, 23.0, 150.0, 320.0),
                       run("segs", 2, 24.0, 118.0, 560.0)]}  # fmt: skip
     machine = {"commit": "abc1234", "date": "2026-11-26", "cpu": "test", "cores": 2, "opensplat": "1.1.5", "load_before": "0.0"}
     return {"machine": machine, "command": "python bench/peers.py", "datasets": [entry]}
@@ -150,9 +153,11 @@ def _record() -> dict:
 def test_report_table_chart_and_the_doc_markers(peers, tmp_path):
     record = _record()
     text = peers.report(record)
-    rows = [ln for ln in text.splitlines() if ln.startswith("| 1 min") or ln.startswith("| 2 min")]
-    assert len(rows) == 2 and rows[0].endswith("+1.50 dB |") and "22.00 / 0.850 (20.00)" in rows[0]
-    assert "OpenSplat 300-320 MB, segs 540-560 MB (1.75x at the most)" in text and "52.9 dB" in text
+    rows = [ln for ln in text.splitlines() if ln.startswith("| sample, ")]
+    assert len(rows) == 2 and rows[0].startswith("| sample, 1 min") and rows[0].endswith("| **+1.50** |")
+    assert "22.00 / 0.850 (20.00)" in rows[0] and "| 23.50 / 0.850 | 59, 900 (1,000) | 1.2k, 12.0k (6.0k), 1.5 | 540 |" in rows[0]
+    assert "| 22.00 / 0.850 (20.00) | 58, 900 | 12.0k, 1.5 | 300 |" in rows[0] and "52.9 dB" in text
+    assert "| 150 *, 900 |" in rows[1]  # 150 s for a 2-minute budget: marked
     png = tmp_path / "peers.png"
     peers.chart(record, png)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
