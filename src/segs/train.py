@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
+from segs.callbacks.checkpoint import DirectCheckpointIO
 from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
 from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
@@ -77,7 +78,8 @@ def build(cfg: DictConfig, session_start: float | None = None):
 
         callbacks.append(LiveViewer(viewer, sequence, align=cfg.eval.ate_align))
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir,
+                                     plugins=[DirectCheckpointIO()])  # fmt: skip
     return sequence, frontend, module, bridge, trainer
 
 

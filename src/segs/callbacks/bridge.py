@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import lightning as L
 import numpy as np
@@ -27,6 +28,18 @@ from segs.slam.runtime.process import FrontendProcess
 log = logging.getLogger(__name__)
 
 WATCH_EVERY_FRAMES = 10  # memory check interval while tracking outside training steps
+
+
+@dataclass
+class _ViewData:
+    """What a training view needs of a fed frame, kept compact until the frontend names its
+    keyframes: image [H,W,3] uint8, depth [H,W] float32 (None when the mapper reads no depth)."""
+
+    index: int
+    timestamp: float
+    camera: object
+    image: torch.Tensor
+    depth: torch.Tensor | None
 
 
 class SlamBridge(L.Callback):
@@ -56,8 +69,9 @@ class SlamBridge(L.Callback):
         self.finished = False
         self.trained_frames: dict[int, int] = {}  # kf_id -> frame index of views the module trains on
         self.held_out_keyframes: list[int] = []
-        self._cache: OrderedDict[int, Frame] = OrderedDict()
+        self._cache: OrderedDict[int, _ViewData] = OrderedDict()  # the latest fed frames, by index
         self._cache_size = cache_frames
+        self._keep_depth = True  # the mapper's uses_depth, read when training starts
         self._restored = False
         self.process_seconds = 0.0
         self.processed = 0
@@ -68,6 +82,7 @@ class SlamBridge(L.Callback):
 
     # -- Lightning hooks ------------------------------------------------------------------------
     def on_train_start(self, trainer, pl_module: GaussianMapper) -> None:
+        self._keep_depth = pl_module.uses_depth
         guard = next((c for c in trainer.callbacks if isinstance(c, MemoryGuard)), None)
         if guard is not None:  # nothing trained before mapping starts (after fit: final.ckpt exists)
             self._watch = lambda where: guard.check(trainer, where, save=False)
@@ -144,7 +159,7 @@ class SlamBridge(L.Callback):
     # -- feeding --------------------------------------------------------------------------------
     def _feed_one(self) -> None:
         frame = self.sequence[self.cursor]
-        self._cache[frame.index] = frame
+        self._cache[frame.index] = self._view_data(frame)
         while len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
         t0 = time.perf_counter()
@@ -182,8 +197,12 @@ class SlamBridge(L.Callback):
         self.map_points.add(self.frontend.poll())
         self.map_points.add(self._finish())
 
-    def _frame(self, index: int) -> Frame:
-        return self._cache[index] if index in self._cache else self.sequence[index]
+    def _view_data(self, frame: Frame) -> _ViewData:
+        depth = torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None and self._keep_depth else None
+        return _ViewData(frame.index, frame.timestamp, frame.camera, to_uint8(torch.from_numpy(np.ascontiguousarray(frame.rgb))), depth)
+
+    def _frame_data(self, index: int) -> _ViewData:
+        return self._cache[index] if index in self._cache else self._view_data(self.sequence[index])
 
     def _push(self, update: MapUpdate, module: GaussianMapper) -> None:
         """Hand one MapUpdate to the mapper; every pose is converted once (float32 copies) and a
@@ -201,7 +220,7 @@ class SlamBridge(L.Callback):
             if self.holdout_every and idx % self.holdout_every == 0:
                 self.held_out_keyframes.append(kf_id)
                 continue
-            new.append(self._training_view(kf_id, self._frame(idx), poses.pop(kf_id)))
+            new.append(self._training_view(kf_id, self._frame_data(idx), poses.pop(kf_id)))
             self.trained_frames[kf_id] = idx
         if new:
             module.add_keyframes(new)
@@ -228,16 +247,9 @@ class SlamBridge(L.Callback):
         return keep
 
     @staticmethod
-    def _training_view(kf_id: int, frame: Frame, w2c: torch.Tensor) -> TrainingView:
-        return TrainingView(
-            kf_id=kf_id,
-            frame_index=frame.index,
-            timestamp=frame.timestamp,
-            image=to_uint8(torch.from_numpy(np.ascontiguousarray(frame.rgb))),
-            w2c=w2c,
-            camera=frame.camera,
-            depth=torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None else None,
-        )
+    def _training_view(kf_id: int, data: _ViewData, w2c: torch.Tensor) -> TrainingView:
+        return TrainingView(kf_id=kf_id, frame_index=data.index, timestamp=data.timestamp, image=data.image, w2c=w2c,
+                            camera=data.camera, depth=data.depth)  # fmt: skip
 
     def write_partial_trajectory(self, path) -> None:
         """The estimated trajectory so far (TUM format), e.g. when training is interrupted."""
