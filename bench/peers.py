@@ -97,10 +97,10 @@ def export(name: str, work: Path, seed: int) -> dict:
 
     from segs.modules.contract import to_uint8
 
-    ttq, ds = _ttq(), DATASETS[name]
+    ds = DATASETS[name]
     overrides = list(ds.overrides) + [f"seed={seed}"]
     pts, cols = [], []
-    cfg, sequence, module, bridge, trainer = ttq._build(overrides, 1, Path(tempfile.mkdtemp(prefix="export_", dir=work)), [])
+    cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, 1, Path(tempfile.mkdtemp(prefix="export_", dir=work)), [])
     add_points = module.add_points
 
     def recording(xyz, rgb, kf_ids):
@@ -109,7 +109,7 @@ def export(name: str, work: Path, seed: int) -> dict:
         return add_points(xyz, rgb, kf_ids)
 
     module.add_points = recording
-    ttq._fit(cfg, module, trainer)
+    _harness.fit(cfg, module, trainer)
     trajectory = bridge.frontend.trajectory()
     train, test = sorted(bridge.trained_frames.values()), bridge.test_frames()[:: ds.test_stride]
     c = sequence.camera
@@ -281,7 +281,7 @@ def segs_child(args) -> None:
     split = json.loads(Path(args.segs_run).read_text())
     out = Path(args.part).parent
     clock = ttq.TrainingClock(args.marks, args.budget_s, lambda m: {})
-    cfg, sequence, module, bridge, trainer = ttq._build(split["overrides"], args.max_steps, out / "run", [clock])
+    cfg, sequence, module, bridge, trainer = _harness.build_training(split["overrides"], args.max_steps, out / "run", [clock])
     trajectory = {int(k): np.asarray(v) for k, v in split["w2c"].items()}
 
     def score(m) -> dict:
@@ -295,7 +295,7 @@ def segs_child(args) -> None:
     clock.score = score
     clock.seconds = time.time() - launch  # imports and building count: the clock runs from launch
     clock.start()
-    ttq._fit(cfg, module, trainer)
+    _harness.fit(cfg, module, trainer)
     clock.stop()
     Path(args.part).write_text(json.dumps({
         "budget_s": args.budget_s, "max_steps": args.max_steps, "steps": int(trainer.global_step), "startup_s": clock.first_step_s,

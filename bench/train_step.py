@@ -139,7 +139,8 @@ def main() -> None:
     if args.variant:
         res = interleaved(args.schedule, args.warmup, args.iters, args.backend, args.experiment, args.extra, args.variant,
                           args.downscale, args.repeats)
-        print(f"medians of {args.iters} iterations in {args.repeats} alternated runs of each after {args.warmup} of a {args.schedule}-step schedule: defaults "
+        print(f"medians of {args.iters} iterations in {args.repeats} alternated runs of each after {args.warmup} of a "
+              f"{args.schedule}-step schedule: defaults "
               f"{1000 * res['defaults']['total']:.1f} ms ({res['defaults']['anchors']} anchors, {res['defaults']['gaussians']:.0f} drawn), "
               f"{' '.join(args.variant)} {1000 * res['variant']['total']:.1f} ms ({res['variant']['anchors']} anchors, "
               f"{res['variant']['gaussians']:.0f} drawn): ratio {res['ratio']:.3f}")  # fmt: skip
