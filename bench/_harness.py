@@ -3,7 +3,7 @@ record of the machine and the code, a timer, the JSON writer, and the bare train
 two training benches.
 
 A script imports it first (`python bench/NAME.py` puts bench/ on sys.path) and calls
-`apply_process_settings()` before the imports that load torch (docs/decisions/process-settings.md).
+`apply_process_settings()` before the imports that load torch (docs/decisions/028-process-settings.md).
 The shared data is read where it lies (non-commercial licences: never copied into the
 repository): `$SEGS_SHARED_DATA`, else `shared/data` beside the checkout. segs is imported in the
 functions that use it: bench/side_by_side.py runs its workers on an older segs as well.

@@ -15,6 +15,7 @@ outputs/bench/train_step.json.
     python bench/train_step.py --schedule 3000 --warmup 1500 --iters 30
     python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
     python bench/train_step.py --downscale 4   # the timed iterations at 1/4 size (coarse-to-fine's first phase)
+    python bench/train_step.py --models segs --variant model.k=5   # the defaults and a variant, timed alternately
 """
 from __future__ import annotations
 
@@ -105,6 +106,21 @@ def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, devi
     return med
 
 
+def interleaved(schedule: int, warmup: int, iters: int, backend: str, experiment: str, extra, variant, factor: int = 1,
+                repeats: int = 1) -> dict:
+    """Seconds per iteration of the SEGS defaults (+ extra) and of the same + variant: `repeats`
+    runs of each, alternated (A B A B ...), each warmed up on its own `schedule` for `warmup`
+    steps and timed as `bench` times it; medians over the runs' medians, and the ratio B / A."""
+    runs: dict[str, list[dict]] = {"defaults": [], "variant": []}
+    for _ in range(repeats):
+        for name, overrides in (("defaults", list(extra)), ("variant", list(extra) + list(variant))):
+            runs[name].append(bench("segs", schedule, warmup, iters, backend, "cpu", experiment, overrides, factor))
+    out = {name: {"total": _harness.medians(rows)["total"], "gaussians": _harness.medians(rows)["gaussians"],
+                  "anchors": rows[-1]["anchors"]} for name, rows in runs.items()}  # fmt: skip
+    out["ratio"] = out["variant"]["total"] / out["defaults"]["total"]
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--schedule", type=int, default=3000, help="trainer.max_steps of the run being imitated")
@@ -116,8 +132,19 @@ def main() -> None:
     p.add_argument("--experiment", default="sample", help="+experiment=NAME (with slam=known_poses)")
     p.add_argument("--extra", nargs="*", default=[], help="more config overrides, e.g. data.frames=[100,250]")
     p.add_argument("--downscale", type=int, default=1, help="time the iterations at 1/N of the image size (warm-up at full size)")
+    p.add_argument("--variant", nargs="+", default=None, help="overrides of a SEGS variant, timed in runs alternated with the defaults")
+    p.add_argument("--repeats", type=int, default=1, help="runs of each with --variant")
     p.add_argument("--out", default=str(_harness.OUTPUTS / "train_step.json"))
     args = p.parse_args()
+    if args.variant:
+        res = interleaved(args.schedule, args.warmup, args.iters, args.backend, args.experiment, args.extra, args.variant,
+                          args.downscale, args.repeats)
+        print(f"medians of {args.iters} iterations in {args.repeats} alternated runs of each after {args.warmup} of a "
+              f"{args.schedule}-step schedule: defaults "
+              f"{1000 * res['defaults']['total']:.1f} ms ({res['defaults']['anchors']} anchors, {res['defaults']['gaussians']:.0f} drawn), "
+              f"{' '.join(args.variant)} {1000 * res['variant']['total']:.1f} ms ({res['variant']['anchors']} anchors, "
+              f"{res['variant']['gaussians']:.0f} drawn): ratio {res['ratio']:.3f}")  # fmt: skip
+        return
     results = {m: bench(m, args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra, args.downscale)
                for m in args.models}
     record = _harness.record()

@@ -1,4 +1,4 @@
-"""The measurement behind docs/decisions/web-viewer.md: viser or rerun for the web viewer.
+"""The measurement behind docs/decisions/027-web-viewer.md: viser or rerun for the web viewer.
 
     python bench/viewer_library.py [--rerun-path DIR] [--repeats 5]
 

@@ -80,7 +80,7 @@ def _calls_in_order(path: Path) -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("script", sorted(p.name for p in BENCH.glob("*.py") if p.name != "_harness.py"))
+@pytest.mark.parametrize("script", sorted(p.name for p in BENCH.glob("*.py") if not p.name.startswith("_")))
 def test_bench_scripts_apply_the_settings_before_anything_but_the_standard_library(script):
     """A script that imports more than the standard library (segs, torch, numpy, ...) calls
     _harness.apply_process_settings() first (bench/headline.py only reads JSON: none)."""
@@ -93,7 +93,7 @@ def test_bench_scripts_apply_the_settings_before_anything_but_the_standard_libra
     assert not late, f"{script} imports {late} before applying the process settings"
 
 
-@pytest.mark.parametrize("script", sorted(p.name for p in BENCH.glob("*.py") if p.name != "_harness.py"))
+@pytest.mark.parametrize("script", sorted(p.name for p in BENCH.glob("*.py") if not p.name.startswith("_")))
 def test_bench_scripts_take_the_data_path_and_the_machine_record_from_the_harness(script):
     text = (BENCH / script).read_text()
     assert '"shared" / "data"' not in text, f"{script}: the shared data path is _harness.SHARED_DATA's"

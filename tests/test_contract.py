@@ -22,9 +22,10 @@ CAMERA = Camera(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24)
 class RecordingMapper:
     """A GaussianMapper that records what it is given."""
 
-    def __init__(self):
+    def __init__(self, uses_depth: bool = False):
         self.iteration_ms: list[float] = []
         self.raster_backend = None
+        self.uses_depth = uses_depth
         self.calls: list[tuple[str, object]] = []
 
     def add_keyframes(self, views):
@@ -75,6 +76,9 @@ class FakeFrontend:
     def keyframe_frames(self):
         return dict(self.kf_frames)
 
+    def process(self, frame):
+        return None
+
 
 class FakeSequence:
     name = "fake"
@@ -83,7 +87,8 @@ class FakeSequence:
         return 4
 
     def __getitem__(self, i):
-        return Frame(index=i, timestamp=float(i), rgb=np.full((24, 32, 3), 0.5, np.float32), camera=CAMERA)
+        return Frame(index=i, timestamp=float(i), rgb=np.full((24, 32, 3), 0.5, np.float32), camera=CAMERA,
+                     depth=np.full((24, 32), 1.5, np.float32))  # fmt: skip
 
 
 def _pose(x: float) -> np.ndarray:
@@ -156,3 +161,32 @@ def test_checkpoints_of_the_old_row_layout_load(name):
     dst.on_load_checkpoint(checkpoint)
     dst.load_state_dict(checkpoint["state_dict"])  # strict: every key found under its new name
     assert all(torch.equal(v, dst.state_dict()[k]) for k, v in new.items() if torch.is_tensor(v))
+
+
+@pytest.mark.parametrize("uses_depth", [False, True])
+def test_the_bridge_keeps_fed_frames_compact_and_depth_only_for_a_mapper_that_reads_it(uses_depth):
+    bridge = SlamBridge(FakeSequence(), FakeFrontend({0: 0, 1: 2}), progress=False)
+    mapper = RecordingMapper(uses_depth)
+    bridge._keep_depth = mapper.uses_depth  # what on_train_start reads
+    for _ in range(3):
+        bridge._feed_one()
+    assert sorted(bridge._cache) == [0, 1, 2] and all(d.image.dtype == torch.uint8 for d in bridge._cache.values())
+    bridge._push(MapUpdate(new_keyframes=[1], poses={1: _pose(0.5)}), mapper)
+    (view,) = mapper.calls[0][1]
+    assert view.image.dtype == torch.uint8 and int(view.image[0, 0, 0]) == 128
+    assert (view.depth is not None) == uses_depth
+    if uses_depth:
+        assert view.depth.dtype == torch.float32 and float(view.depth[0, 0]) == 1.5
+
+
+@pytest.mark.parametrize("model, lambda_depth", [("segs", None), ("plain_3dgs", 0.0), ("plain_3dgs", 0.5)])
+def test_the_mapper_keeps_a_views_depth_only_when_its_loss_reads_it(model, lambda_depth):
+    node = model_node(model, **({"lambda_depth": lambda_depth} if lambda_depth is not None else {}))
+    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1})
+    raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
+    module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)
+    view = TrainingView(kf_id=0, frame_index=0, timestamp=0.0, image=torch.zeros(24, 32, 3, dtype=torch.uint8),
+                        w2c=torch.eye(4), camera=CAMERA, depth=torch.ones(24, 32))  # fmt: skip
+    module.add_keyframes([view])
+    reads = bool(lambda_depth)
+    assert module.uses_depth == reads and (module.views[0].depth is not None) == reads

@@ -2,15 +2,19 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from torchmetrics.functional.image import structural_similarity_index_measure
 
+from segs.data.tum import TumSequence
 from segs.errors import ConfigError
 from segs.modules.metrics import Lpips, alexnet_features, make_lpips, psnr, ssim
 from segs.trajectory import ate, step_scale
+
+SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "tum_fr3_cabinet_kf"
 
 
 def test_psnr_is_the_mean_of_per_channel_psnr():
@@ -28,8 +32,7 @@ def test_ssim_identity_and_constant_images():
     # two constant images a, b: SSIM = (2ab + C1) / (a^2 + b^2 + C1) everywhere
     a, b, c1 = 0.2, 0.6, 0.01**2
     got = ssim(torch.full((32, 32, 3), a), torch.full((32, 32, 3), b))
-    # float32: E[x^2] - E[x]^2 of a constant image is a few 1e-8, not 0 (the worst case; real images
-    # agree with float64 to 1e-7)
+    # float32: E[x^2] - E[x]^2 of a constant image is a few 1e-8, not 0 (the worst case)
     assert got == pytest.approx((2 * a * b + c1) / (a * a + b * b + c1), rel=3e-4)
 
 
@@ -40,6 +43,20 @@ def test_ssim_in_float32_agrees_with_float64_on_images():
     ref = structural_similarity_index_measure(a.permute(2, 0, 1)[None].double(), b.permute(2, 0, 1)[None].double(),
                                               gaussian_kernel=True, sigma=1.5, kernel_size=11, data_range=1.0)  # fmt: skip
     assert ssim(a, b) == pytest.approx(float(ref), abs=1e-6)
+
+
+def test_ssim_of_real_frames_agrees_with_torchmetrics_in_float64():
+    """The evaluation's SSIM (the fused kernel on the CPU) against torchmetrics in float64 on the
+    bundled sample's frames: pairs of neighbours and a noisy copy."""
+    sample_sequence = TumSequence(SAMPLE, downscale=2, freiburg=3)
+    g = torch.Generator().manual_seed(0)
+    for i in (0, 20, 40):
+        a, b = (torch.from_numpy(np.ascontiguousarray(sample_sequence[j].rgb)) for j in (i, i + 1))
+        noisy = (a + 0.05 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+        for x, y in ((a, b), (noisy, a)):
+            ref = structural_similarity_index_measure(x.permute(2, 0, 1)[None].double(), y.permute(2, 0, 1)[None].double(),
+                                                      gaussian_kernel=True, sigma=1.5, kernel_size=11, data_range=1.0)  # fmt: skip
+            assert ssim(x, y) == pytest.approx(float(ref), abs=1.5e-5)
 
 
 def test_lpips_is_unavailable_without_weights():

@@ -95,6 +95,25 @@ def test_checkpoint_write_is_atomic(tmp_path):
     assert path.read_bytes() == b"previous checkpoint"
 
 
+def test_run_checkpoints_are_written_straight_to_their_file(tiny_cfg, tmp_path, monkeypatch):
+    """segs.train's trainer writes with DirectCheckpointIO: torch.save to the (temporary) file,
+    without Lightning's in-memory copy of the whole checkpoint."""
+    import io
+
+    from segs.callbacks.checkpoint import DirectCheckpointIO
+    from segs.train import build
+
+    _seq, _fe, _module, _bridge, trainer = build(tiny_cfg(out=tmp_path / "run"))
+    assert isinstance(trainer.strategy.checkpoint_io, DirectCheckpointIO)
+    saved = []
+    monkeypatch.setattr(torch, "save", lambda obj, f, **kw: saved.append(f))
+    trainer.strategy.checkpoint_io.save_checkpoint({"step": torch.arange(3)}, tmp_path / "sub" / "x.ckpt")
+    assert saved == [str(tmp_path / "sub" / "x.ckpt")] and not isinstance(saved[0], io.BytesIO)
+    monkeypatch.undo()
+    DirectCheckpointIO().save_checkpoint({"step": torch.arange(3)}, tmp_path / "x.ckpt")
+    assert torch.equal(torch.load(tmp_path / "x.ckpt")["step"], torch.arange(3))
+
+
 def test_fixed_seed_gives_the_same_run(tiny_cfg, tmp_path):
     a = run(tiny_cfg("trainer.max_steps=50", "seed=3", out=tmp_path / "a"))
     b = run(tiny_cfg("trainer.max_steps=50", "seed=3", out=tmp_path / "b"))

@@ -1,6 +1,6 @@
 """Process-wide settings of segs's programs, applied by each entry point before torch loads.
 
-`apply()` is called by the programs, never by an import (docs/decisions/process-settings.md):
+`apply()` is called by the programs, never by an import (docs/decisions/028-process-settings.md):
 `python -m segs.train` and `segs.track`, the child processes (`segs.pipeline.process`,
 `segs.slam.backend.ba_process`, the frame reader of `segs.pipeline.readers`), the vocabulary
 trainer, bench/_harness.py and tests/conftest.py. It sets

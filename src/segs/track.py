@@ -192,7 +192,7 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
-    process_settings.apply()  # nothing above loads torch (docs/decisions/process-settings.md)
+    process_settings.apply()  # nothing above loads torch (docs/decisions/028-process-settings.md)
     if not any(a.startswith(("task_name=", "+task_name=", "++task_name=")) for a in sys.argv[1:]):
         sys.argv.append("task_name=track")
     main()

@@ -6,7 +6,7 @@ checkpoint into the Hydra run folder.
 """
 from __future__ import annotations
 
-if __name__ == "__main__":  # the program: process settings before torch loads (docs/decisions/process-settings.md)
+if __name__ == "__main__":  # the program: process settings before torch loads (docs/decisions/028-process-settings.md)
     from segs import process_settings
 
     process_settings.apply()
@@ -25,6 +25,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
+from segs.callbacks.checkpoint import DirectCheckpointIO
 from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
 from segs.config import instantiate, make_sequence, make_source, user_errors_exit, validate
@@ -154,7 +155,8 @@ def build(cfg: DictConfig, session_start: float | None = None) -> TrainingRun:
 
         callbacks.append(LiveViewer(viewer, sequence, align=cfg.eval.ate_align))
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir,
+                                     plugins=[DirectCheckpointIO()])
     guard = next((c for c in callbacks if isinstance(c, MemoryGuard)), None)
     return TrainingRun(cfg, Path(cfg.paths.output_dir), sequence, state, module, bridge, trainer, interrupt, run_record, guard,
                        started)  # fmt: skip

@@ -10,7 +10,7 @@ Serves until Ctrl-C. Defaults of --host / --port / --first-port: conf/viewer/on.
 """
 from __future__ import annotations
 
-if __name__ == "__main__":  # the program: process settings before torch loads (docs/decisions/process-settings.md)
+if __name__ == "__main__":  # the program: process settings before torch loads (docs/decisions/028-process-settings.md)
     from segs import process_settings
 
     process_settings.apply()

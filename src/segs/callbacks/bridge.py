@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import lightning as L
 import numpy as np
@@ -29,6 +30,18 @@ from segs.slam.base import STATE_FORMAT, MapUpdate
 log = logging.getLogger(__name__)
 
 WATCH_EVERY_FRAMES = 10  # memory check interval while tracking outside training steps
+
+
+@dataclass
+class _ViewData:
+    """What a training view needs of a fed frame, kept compact until the frontend names its
+    keyframes: image [H,W,3] uint8, depth [H,W] float32 (None when the mapper reads no depth)."""
+
+    index: int
+    timestamp: float
+    camera: object
+    image: torch.Tensor
+    depth: torch.Tensor | None
 
 
 class SlamBridge(L.Callback):
@@ -50,8 +63,9 @@ class SlamBridge(L.Callback):
         self.feed_until, self.frames_per_step = feed_until, frames_per_step
         self.min_initial_keyframes, self.progress = min_initial_keyframes, progress
         self.credit = 0.0  # frames owed to a paced frontend
-        self._cache: OrderedDict[int, Frame] = OrderedDict()  # the latest fed frames, by index
+        self._cache: OrderedDict[int, _ViewData] = OrderedDict()  # the latest fed frames, by index
         self._cache_size = cache_frames
+        self._keep_depth = True  # the mapper's uses_depth, read when training starts
         self._restored = False
         self._watch = None  # memory check called while tracking: where -> None (raises LimitError)
         self.source.on_frame = self._fed
@@ -63,6 +77,7 @@ class SlamBridge(L.Callback):
 
     # -- Lightning hooks ------------------------------------------------------------------------
     def on_train_start(self, trainer, pl_module: GaussianMapper) -> None:
+        self._keep_depth = pl_module.uses_depth
         guard = next((c for c in trainer.callbacks if isinstance(c, MemoryGuard)), None)
         if guard is not None:  # nothing trained before mapping starts (after fit: final.ckpt exists)
             self._watch = lambda where: guard.check(trainer, where, save=False)
@@ -116,8 +131,8 @@ class SlamBridge(L.Callback):
 
     # -- feeding --------------------------------------------------------------------------------
     def _fed(self, frame: Frame, result) -> None:
-        """After each frame tracked in this process: kept for its keyframe's view; memory check."""
-        self._cache[frame.index] = frame
+        """After each frame tracked in this process: kept (compact) for its keyframe's view; memory check."""
+        self._cache[frame.index] = self._view_data(frame)
         while len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
         if self._watch is not None and self.source.cursor % WATCH_EVERY_FRAMES == 0:
@@ -138,8 +153,12 @@ class SlamBridge(L.Callback):
         self.map_points.add(source.track(0))
         self.map_points.add(self.run.finish())
 
-    def _frame(self, index: int) -> Frame:
-        return self._cache[index] if index in self._cache else self.sequence[index]
+    def _view_data(self, frame: Frame) -> _ViewData:
+        depth = torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None and self._keep_depth else None
+        return _ViewData(frame.index, frame.timestamp, frame.camera, to_uint8(torch.from_numpy(np.ascontiguousarray(frame.rgb))), depth)
+
+    def _frame_data(self, index: int) -> _ViewData:
+        return self._cache[index] if index in self._cache else self._view_data(self.sequence[index])
 
     def _push(self, update: MapUpdate, module: GaussianMapper) -> None:
         """Hand one MapUpdate to the mapper, routed by the RunState; every pose is converted once
@@ -149,7 +168,7 @@ class SlamBridge(L.Callback):
             return
         f32 = lambda v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
         poses = {int(k): f32(v) for k, v in routed.poses.items()}
-        new = [self._training_view(kf_id, self._frame(idx), f32(w2c)) for kf_id, idx, w2c in routed.views]
+        new = [self._training_view(kf_id, self._frame_data(idx), f32(w2c)) for kf_id, idx, w2c in routed.views]
         if new:
             module.add_keyframes(new)
         if poses:
@@ -164,16 +183,9 @@ class SlamBridge(L.Callback):
             )
 
     @staticmethod
-    def _training_view(kf_id: int, frame: Frame, w2c: torch.Tensor) -> TrainingView:
-        return TrainingView(
-            kf_id=kf_id,
-            frame_index=frame.index,
-            timestamp=frame.timestamp,
-            image=to_uint8(torch.from_numpy(np.ascontiguousarray(frame.rgb))),
-            w2c=w2c,
-            camera=frame.camera,
-            depth=torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None else None,
-        )
+    def _training_view(kf_id: int, data: _ViewData, w2c: torch.Tensor) -> TrainingView:
+        return TrainingView(kf_id=kf_id, frame_index=data.index, timestamp=data.timestamp, image=data.image, w2c=w2c,
+                            camera=data.camera, depth=data.depth)  # fmt: skip
 
     # -- checkpoints ----------------------------------------------------------------------------
     def state_dict(self) -> dict:

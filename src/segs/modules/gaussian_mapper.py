@@ -7,6 +7,7 @@ first_view, render_image, count_active, training_views, gaussians, export_ply.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import random
 import time
@@ -50,10 +51,16 @@ class GaussianMapperModule(L.LightningModule):
         self.restored_step = 0  # the loaded checkpoint's step: renders outside a trainer (segs.view) use it
 
     # -- the bridge contract (segs.modules.contract.GaussianMapper) -----------------------------
+    @property
+    def uses_depth(self) -> bool:
+        """Whether the scene model's loss reads the keyframes' depth."""
+        return self.model.uses_depth
+
     def add_keyframes(self, views: list[TrainingView]) -> None:
-        """New training views (image [H,W,3] uint8, w2c [4,4] float32)."""
+        """New training views (image [H,W,3] uint8, w2c [4,4] float32); their depth is kept only
+        when the model's loss reads it."""
         for view in views:
-            self.views.add(view)
+            self.views.add(view if self.uses_depth or view.depth is None else dataclasses.replace(view, depth=None))
         self.model.register_views({v.kf_id: v.w2c for v in views})
         self._update_extent()
 
@@ -155,7 +162,7 @@ class GaussianMapperModule(L.LightningModule):
         view = View(kf.w2c.to(self.device), coarse_camera(kf.camera, factor), kf.kf_id)
         gt = coarse_image(kf.rgb().to(self.device), factor)
         out, decoded = self.render(view, step)
-        depth = coarse_depth(kf.depth.to(self.device), factor) if kf.depth is not None else None
+        depth = coarse_depth(kf.depth.to(self.device), factor) if kf.depth is not None and self.uses_depth else None
         terms = self.model.loss(out, gt, decoded, step, depth)
         if terms["total"].requires_grad:
             self.manual_backward(terms["total"])

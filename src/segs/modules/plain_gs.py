@@ -40,6 +40,7 @@ class PlainGaussians(SceneModel):
         super().__init__()
         self.sh_degree, self.sh_increase_every = cfg.sh_degree, cfg.sh_increase_every
         self.lambda_dssim, self.lambda_depth = cfg.lambda_dssim, cfg.lambda_depth
+        self.uses_depth = cfg.lambda_depth > 0
         self.init_opacity, self.max_gaussians = cfg.init_opacity, cfg.max_gaussians
         if cfg.budget_mb is not None:
             floats = 3 + 3 + 4 + 1 + 3 * (cfg.sh_degree + 1) ** 2  # means, scales, quats, opacity, SH

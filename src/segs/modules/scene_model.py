@@ -86,6 +86,8 @@ class SceneModel(nn.Module, abc.ABC):
     """
 
     scene_extent: float = 1.0
+    # whether loss() reads the keyframes' depth; without it the mapper keeps no depth image
+    uses_depth: bool = False
     # state-dict names of checkpoints written before the PrimitiveRows store: old -> new, a name
     # ending in "." renames every key under it (see upgrade_state_keys)
     LEGACY_STATE_KEYS: dict[str, str] = {}
