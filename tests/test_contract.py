@@ -79,6 +79,9 @@ class FakeFrontend:
     def process(self, frame):
         return None
 
+    def poll(self):
+        return MapUpdate()
+
 
 class FakeSequence:
     name = "fake"
@@ -165,11 +168,12 @@ def test_checkpoints_of_the_old_row_layout_load(name):
 
 @pytest.mark.parametrize("uses_depth", [False, True])
 def test_the_bridge_keeps_fed_frames_compact_and_depth_only_for_a_mapper_that_reads_it(uses_depth):
-    bridge = SlamBridge(FakeSequence(), FakeFrontend({0: 0, 1: 2}), progress=False)
+    frontend, seq = FakeFrontend({0: 0, 1: 2}), FakeSequence()
+    run = RunState(seq, InterleavedSource(frontend, seq))
+    bridge = SlamBridge(run, feed_until=0.2, frames_per_step=None, min_initial_keyframes=1, progress=False, cache_frames=4)
     mapper = RecordingMapper(uses_depth)
     bridge._keep_depth = mapper.uses_depth  # what on_train_start reads
-    for _ in range(3):
-        bridge._feed_one()
+    run.source.track(3)
     assert sorted(bridge._cache) == [0, 1, 2] and all(d.image.dtype == torch.uint8 for d in bridge._cache.values())
     bridge._push(MapUpdate(new_keyframes=[1], poses={1: _pose(0.5)}), mapper)
     (view,) = mapper.calls[0][1]

@@ -103,7 +103,7 @@ def test_run_checkpoints_are_written_straight_to_their_file(tiny_cfg, tmp_path, 
     from segs.callbacks.checkpoint import DirectCheckpointIO
     from segs.train import build
 
-    _seq, _fe, _module, _bridge, trainer = build(tiny_cfg(out=tmp_path / "run"))
+    trainer = build(tiny_cfg(out=tmp_path / "run")).trainer
     assert isinstance(trainer.strategy.checkpoint_io, DirectCheckpointIO)
     saved = []
     monkeypatch.setattr(torch, "save", lambda obj, f, **kw: saved.append(f))
