@@ -24,7 +24,7 @@ SEVEN_SCENES = SHARED_DATA / "7scenes_redkitchen_0000_0599"  # 600 real 7-Scenes
 OUTPUTS = ROOT / "outputs" / "bench"
 
 # a bare segs.train run: no loggers, bars, image logging, checkpoints or signal handlers
-QUIET = ["logger=none", "~callbacks.progress_bar", "~callbacks.image_logger", "~callbacks.periodic_checkpoint", "~callbacks.interrupt",
+QUIET = ["logger=none", "~callbacks.progress_bar", "~callbacks.image_logger", "~callbacks.periodic_checkpoint",
          "callbacks.slam_bridge.progress=false", "trainer.enable_progress_bar=false", "eval.progress=false"]  # fmt: skip
 FEED_ALL = "callbacks.slam_bridge.min_initial_keyframes=1000000000"  # every frame is fed before the first step
 
@@ -112,18 +112,13 @@ def build_training(overrides: list[str], max_steps: int, out: Path, callbacks: l
 
     cfg = compose(overrides + QUIET + [FEED_ALL, f"trainer.max_steps={max_steps}"], output_dir=str(out))
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    sequence, _frontend, module, bridge, trainer = build(cfg, time.perf_counter())
-    trainer.callbacks.extend(callbacks)
-    return cfg, sequence, module, bridge, trainer
+    training = build(cfg, time.perf_counter())
+    training.trainer.callbacks.extend(callbacks)
+    return cfg, training.sequence, training.module, training.bridge, training.trainer
 
 
 def fit(cfg, module, trainer) -> None:
-    """trainer.fit over segs.train's step dataset, with its seeded loader."""
-    import torch
-    from torch.utils.data import DataLoader
+    """trainer.fit over segs.train's step indices (segs.train.step_batches)."""
+    from segs.train import step_batches
 
-    from segs.train import StepDataset
-
-    loader = DataLoader(StepDataset(cfg.trainer.max_steps), batch_size=None, shuffle=False,
-                        generator=torch.Generator().manual_seed(cfg.seed))  # fmt: skip
-    trainer.fit(module, loader, weights_only=False)
+    trainer.fit(module, step_batches(cfg.trainer.max_steps), weights_only=False)

@@ -9,7 +9,7 @@ reports each run's ATE (evo; SE(3) for RGB-D, Sim(3) for monocular), keyframes a
 tracked, and their mean / standard deviation / range. Compare settings by these, not by one run.
 
     python bench/ate_spread.py --offsets 6
-    python bench/ate_spread.py --offsets 6 --override slam.mapping.ba_iterations_rgbd=[4,1]
+    python bench/ate_spread.py --offsets 6 --override slam.local_mapping.ba_iterations_rgbd=[4,1]
 
 JSON: outputs/bench/ate_spread/<time>.json (with the source folder and commit of the segs that ran).
 """

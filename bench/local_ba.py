@@ -12,7 +12,7 @@ problem (poses, fixed keyframes, points, observations). Then, on the last --prob
 - whole optimisations: solver / order variants and iteration budgets, with the final cost
   (sum of robust squared whitened errors) relative to LM 5 iterations;
 - BundleAdjuster.run_two_pass as the frontend calls it, each call after the previous problem's
-  (the figure in fe.mapper.ba_times, minus reading / writing the map), with the configured and
+  (the figure in fe.local_mapping.ba_times, minus reading / writing the map), with the configured and
   other iteration budgets / early stops (min_gain), with LM's initial damping as configured
   (optimize.LAMBDA_INITIAL) and gtsam's default 1e-5, and the final cost (every observation,
   robust) relative to the configured call's.
@@ -61,7 +61,7 @@ def record_problems(sensor: str, frames: int) -> tuple[list, BundleAdjuster, dic
             fe.process(seq[i])
     finally:
         optimize.BundleAdjuster.run_two_pass = original
-    info = {"keyframes": len(fe.keyframe_frames()), "local_ba_ms_in_run": 1e3 * float(np.median(fe.mapper.ba_times))}
+    info = {"keyframes": len(fe.keyframe_frames()), "local_ba_ms_in_run": 1e3 * float(np.median(fe.local_mapping.ba_times))}
     return problems, fe.ba, info
 
 
@@ -191,7 +191,7 @@ def main() -> None:
         print(f"  {k:90s} {v:12.5f} {means[k]:12.5f}")
     for k, n in failed.items():
         print(f"  {k}: indeterminate system (gtsam) on {n} of {len(problems)} problems, left out of its rows")
-    print(f"  {'local BA in the tracking run (fe.mapper.ba_times, median, ms)':72s} {info['local_ba_ms_in_run']:12.1f}")
+    print(f"  {'local BA in the tracking run (fe.local_mapping.ba_times, median, ms)':72s} {info['local_ba_ms_in_run']:12.1f}")
     record["machine"]["load_avg_end"] = _harness.load_average()
     _harness.write_json(_harness.OUTPUTS / "local_ba.json", {"args": vars(args), **record, "info": info, "medians": table, "means": means,
                                                              "indeterminate": failed})  # fmt: skip

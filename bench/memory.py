@@ -108,7 +108,7 @@ def main(overrides: list[str]) -> None:
     def built(*args, **kwargs):
         out = build(*args, **kwargs)
         stages.mark("run built (sequence, frontend, module, trainer)")
-        out[-1].callbacks.append(Marks())
+        out.trainer.callbacks.append(Marks())
         return out
 
     def saved(*args, **kwargs):

@@ -13,7 +13,7 @@ Sequences (monocular, 640x480):
   colour camera), the first --scenes-frames frames.
 
 Methods, on the same frames:
-- segs: `OrbFrontend(camera, "mono")` with the conf/slam/orb.yaml defaults, single-threaded
+- segs: `slam_frontend(camera, "mono")` with the conf/slam/orb.yaml defaults, single-threaded
   (deterministic); every frame fed in order;
 - two-view: the naive essential-matrix odometry of issue 10 (no map, no BA): ORB features of
   consecutive frames (segs' extractor, same settings), ratio-test matches, `cv2.findEssentialMat`
@@ -40,12 +40,12 @@ _harness.apply_process_settings()  # before torch loads
 import cv2
 import numpy as np
 
+from segs.config import slam_frontend
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.data.synthetic import SyntheticSequence
-from segs.slam.config import FeatureConfig
+from segs.slam.config import group_from_yaml
 from segs.slam.estimation.matching import match_descriptors
 from segs.slam.features.extractor import OrbExtractor, to_gray
-from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 
 SCENES = _harness.SEVEN_SCENES
@@ -112,7 +112,7 @@ def _summary(seq, traj, length, extra) -> dict:
 
 def run_segs(seq, frames) -> tuple[dict, dict]:
     """One single-threaded frontend run -> (accuracy summary, timings)."""
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     process_s = 0.0
     for f in frames:
         t0 = time.perf_counter()
@@ -130,7 +130,7 @@ def run_segs(seq, frames) -> tuple[dict, dict]:
 
 
 def run_two_view(seq, frames) -> tuple[dict, dict]:
-    fc = FeatureConfig()
+    fc = group_from_yaml("features")
     ex = OrbExtractor.from_config(fc)
     traj, failed, s = two_view_odometry(frames, seq.camera.K, ex)
     return _summary(seq, traj, path_length(seq.gt_poses), {"failed_steps": failed}), {"fps": len(frames) / s}

@@ -110,8 +110,8 @@ def export(name: str, work: Path, seed: int) -> dict:
 
     module.add_points = recording
     _harness.fit(cfg, module, trainer)
-    trajectory = bridge.frontend.trajectory()
-    train, test = sorted(bridge.trained_frames.values()), bridge.test_frames()[:: ds.test_stride]
+    trajectory = bridge.run.trajectory()
+    train, test = sorted(bridge.run.trained_frames().values()), bridge.run.test_frames()[:: ds.test_stride]
     c = sequence.camera
     camera = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height}
     crop = peer.principal_point_crop(c.cx, c.cy, c.width, c.height)
@@ -285,7 +285,7 @@ def segs_child(args) -> None:
     trajectory = {int(k): np.asarray(v) for k, v in split["w2c"].items()}
 
     def score(m) -> dict:
-        if sorted(bridge.trained_frames.values()) != split["train"] or not set(split["test"]) <= set(bridge.test_frames()):
+        if sorted(bridge.run.trained_frames().values()) != split["train"] or not set(split["test"]) <= set(bridge.run.test_frames()):
             raise RuntimeError("the run's training / test views are not the exported split's")
         res = score_views(lambda w2c, cam: m.render_image(w2c, cam)["image"], sequence, trajectory, split["test"], split["crop"])
         c = m.counts()

@@ -96,14 +96,14 @@ def track(row: dict, out: Path, extra: list[str]) -> dict:
 def two_view(row: dict) -> dict:
     """bench/mono_forward.py's essential-matrix odometry (unit steps) on the row's sequence."""
     from segs.config import compose, make_sequence
-    from segs.slam.config import FeatureConfig
+    from segs.slam.config import group_from_yaml
     from segs.slam.features.extractor import OrbExtractor
     from segs.trajectory import ate, step_scale
 
     cfg = compose([*row["overrides"], f"data.root={row['root']}"], output_dir="/tmp/segs_bench_real_sequences")
     seq = make_sequence(cfg.data)
     traj, failed, _ = two_view_odometry((seq[i] for i in range(len(seq))), seq.camera.K,
-                                        OrbExtractor.from_config(FeatureConfig()))  # fmt: skip
+                                        OrbExtractor.from_config(group_from_yaml("features")))  # fmt: skip
     scale = step_scale(seq.timestamps, traj, seq.gt_poses)
     scale.pop("ratios", None)
     return {"ate_rmse_m": ate(seq.timestamps, traj, seq.gt_poses, "sim3")["rmse"], "failed_steps": failed,

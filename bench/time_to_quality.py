@@ -161,7 +161,7 @@ def view_scorer(sequence, bridge, out: Path) -> Callable[[L.LightningModule], di
     calls = [0]
 
     def score(module) -> dict:
-        test, trajectory = bridge.test_frames(), bridge.frontend.trajectory()
+        test, trajectory = bridge.run.test_frames(), bridge.run.trajectory()
         m = render_test_views(module, sequence, trajectory, test, None, 0, out / f"eval_{calls[0]:03d}", progress=False)
         calls[0] += 1
         c = module.counts()

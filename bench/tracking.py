@@ -32,9 +32,9 @@ _harness.apply_process_settings()  # before torch loads
 
 import numpy as np
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
 from segs.data.tum import TumSequence
-from segs.slam.orb import OrbFrontend
 from segs.trajectory import ate
 
 ROOT = _harness.ROOT
@@ -64,7 +64,7 @@ def one_run(seq, sensor: str, make_frontend, threaded: bool) -> dict:
         "tracking_p90_ms": float(np.percentile(t["track"], 90)),
         "tracking_cpu_ms": med(t["track_cpu"]),
         "mapping_ms_per_kf": med(t["mapping"]),
-        "local_ba_ms_per_kf": med(np.array(fe.mapper.ba_times) * 1e3),
+        "local_ba_ms_per_kf": med(np.array(fe.local_mapping.ba_times) * 1e3),
         "loop_ms_per_kf": med(t["loop"]),
         "end_to_end_fps": len(seq) / process_s,
         # threaded: process() returns before its keyframes are mapped; finish() drains the backlog
@@ -107,7 +107,7 @@ def bench(name, seq, sensor, make_frontend, runs, threaded_too=True) -> dict:
 
 def frontend_factory(camera, sensor: str, **kwargs):
     """threaded -> a new OrbFrontend with the frontend defaults and `kwargs` groups."""
-    return lambda threaded: OrbFrontend(camera, sensor, threaded=threaded, **kwargs)
+    return lambda threaded: slam_frontend(camera, sensor, threaded=threaded, **kwargs)
 
 
 def experiment(name: str, overrides: list[str]):

@@ -82,3 +82,34 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if SHARED_DATA_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+
+
+def orb_v2_state(fe) -> dict:
+    """The "segs.orb.v2" state of an OrbFrontend, as checkpoints before segs.state.v3 held it: the
+    map, keyframe database, outbox and the components' state fields pickled in one blob."""
+    import pickle
+
+    data = {"map": fe.map, "kfdb": fe.kfdb, "outbox": fe.outbox, "tracker": fe.tracker.state_fields(),
+            "mapper": fe.local_mapping.state_fields(), "loop": fe.loop.state_fields()}  # fmt: skip
+    lock, fe.map.lock = fe.map.lock, None
+    try:
+        blob = pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL)
+    finally:
+        fe.map.lock = lock
+    return {"format": "segs.orb.v2", "blob": blob}
+
+
+def instances_in(value, where: str = "state") -> list[str]:
+    """Paths of the values of a checkpoint state that are neither numbers, strings, arrays nor
+    plain containers (segs.state.v3 holds no class instance)."""
+    import numpy as np
+    import torch
+
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in instances_in(v, f"{where}.{k}")]
+    if isinstance(value, (list, tuple)):
+        return [p for i, v in enumerate(value) for p in instances_in(v, f"{where}[{i}]")]
+    if isinstance(value, np.ndarray) and value.dtype == object:
+        return [f"{where}: object array"]
+    plain = (bool, int, float, str, type(None), np.ndarray, torch.Tensor, np.bool_, np.integer, np.floating)
+    return [] if isinstance(value, plain) else [f"{where}: {type(value).__name__}"]

@@ -191,11 +191,11 @@ def test_euroc_pair_without_baseline(tmp_path, capsys):
     ("data.downscale=1000", "data.downscale"), ("raster.backend=cuda", "raster.backend"),
     ("+eval.anything=1", "eval.anything: unknown key"), ("eval.write_ply=maybe", "eval.write_ply")])  # fmt: skip
 def test_bad_values_are_refused_before_any_work(tmp_path, capsys, monkeypatch, override, key):
-    from segs.callbacks.bridge import SlamBridge
+    from segs.pipeline.loop import FrameLoop
 
     if override == "raster.backend=cuda" and torch.cuda.is_available():
         override = "raster.backend=cuda trainer.accelerator=cpu"
-    monkeypatch.setattr(SlamBridge, "_feed_one", lambda self: pytest.fail("a frame was tracked before the check"))
+    monkeypatch.setattr(FrameLoop, "step", lambda self: pytest.fail("a frame was tracked before the check"))
     msg = _fails(tmp_path, capsys, *override.split())
     assert msg.startswith(("error: config key " + key, "error: " + key)), msg
 

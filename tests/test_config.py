@@ -168,3 +168,33 @@ def test_the_former_camera_group_points_to_sensor(tmp_path):
     cfg = compose(["+experiment=tum_rgbd", "camera=mono"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match="camera was renamed sensor: use sensor=mono"):
         validate(cfg)
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["+foo=1"], "foo: unknown key at the top of the config"),
+    (["+eval.anything=1"], "eval.anything: unknown key"),
+    (["+sensor.foo=1"], "sensor.foo: unknown key"),
+    (["+paths.foo=1"], "paths.foo: unknown key"),
+    (["+limits.foo=1"], "limits.foo: unknown key"),
+    (["+data.foo=1"], "data.foo: unknown key"),
+    (["+trainer.foo=1"], "trainer.foo: unknown key"),
+    (["+callbacks.slam_bridge.foo=1"], "callbacks.slam_bridge.foo: unknown key"),
+    (["+callbacks.image_logger.foo=1"], "callbacks.image_logger.foo: unknown key"),
+    (["+logger.tensorboard.foo=1"], "logger.tensorboard.foo: unknown key"),
+    (["+slam.foo=1"], "slam.foo: unknown key"),
+    (["slam=orb", "+slam.tracking.min_inlier=30"], "slam.tracking.min_inlier: unknown key"),
+    (["slam=orb", "~slam.tracking.min_inliers"], "slam.tracking.min_inliers: missing key"),
+    (["slam=orb", "slam.tracking.min_inliers=many"], "slam.tracking.min_inliers='many': expected an integer"),
+    (["slam=orb", "+slam.mapping.ba_window=5"], "slam.mapping was renamed: use slam.local_mapping"),
+    (["slam=orb", "slam.local_mapping.ba_window=0"], "slam.local_mapping.ba_window: at least 1 keyframe"),
+])  # fmt: skip
+def test_every_group_refuses_unknown_keys_in_one_line(overrides, message, tmp_path):
+    """Every group, typed (segs.schema.build) or a Hydra target (its signature), names the full key."""
+    cfg = compose(overrides, output_dir=str(tmp_path))
+    with pytest.raises(ConfigError) as err:
+        validate(cfg)
+    assert str(err.value).startswith(message) and "\n" not in str(err.value), str(err.value)
+    if overrides[-1] == "+trainer.foo=1":
+        return
+    validate(compose([o for o in overrides if o.startswith("slam=")] + ["+logger.tensorboard.flush_secs=5"],
+                     output_dir=str(tmp_path)))  # a key the target passes on is not unknown

@@ -12,6 +12,8 @@ from segs.data.frame import Camera, Frame
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.contract import GaussianMapper, MapCounts, TrainingView
 from segs.modules.gaussian_mapper import GaussianMapperModule
+from segs.pipeline.run_state import RunState
+from segs.pipeline.sources import InterleavedSource
 from segs.slam.base import MapUpdate
 
 CAMERA = Camera(fx=40.0, fy=40.0, cx=16.0, cy=12.0, width=32, height=24)
@@ -63,14 +65,22 @@ class RecordingMapper:
 
 
 class FakeFrontend:
+    uses_ground_truth_poses = False
+
     def __init__(self, kf_frames):
         self.kf_frames = kf_frames
+
+    def prepare(self, frame):
+        return frame
 
     def keyframe_frames(self):
         return dict(self.kf_frames)
 
     def process(self, frame):
         return None
+
+    def poll(self):
+        return MapUpdate()
 
 
 class FakeSequence:
@@ -105,8 +115,9 @@ def test_the_mapper_module_implements_the_contract():
 
 
 def test_the_bridge_registers_a_new_views_pose_once_as_a_float32_copy():
-    frontend = FakeFrontend({0: 0, 1: 2})
-    bridge = SlamBridge(FakeSequence(), frontend, progress=False)
+    frontend, seq = FakeFrontend({0: 0, 1: 2}), FakeSequence()
+    run = RunState(seq, InterleavedSource(frontend, seq))
+    bridge = SlamBridge(run, feed_until=0.2, frames_per_step=None, min_initial_keyframes=1, progress=False, cache_frames=4)
     mapper = RecordingMapper()
     frontend_pose = _pose(0.5).astype(np.float32)
     update = MapUpdate(new_keyframes=[1], poses={0: _pose(0.1), 1: frontend_pose},
@@ -119,6 +130,7 @@ def test_the_bridge_registers_a_new_views_pose_once_as_a_float32_copy():
     assert set(mapper.calls[1][1]) == {0}  # the new view's pose came with the view, not a second time
     frontend_pose[0, 3] = 9.0  # the frontend editing its own array does not move the mapper's view
     assert float(view.w2c[0, 3]) == 0.5
+    assert run.trained_frames() == {1: 2} and run.keyframes[1].trained  # the run's registry
 
 
 def _old_layout(state: dict, renames: dict[str, str]) -> dict:
@@ -156,11 +168,12 @@ def test_checkpoints_of_the_old_row_layout_load(name):
 
 @pytest.mark.parametrize("uses_depth", [False, True])
 def test_the_bridge_keeps_fed_frames_compact_and_depth_only_for_a_mapper_that_reads_it(uses_depth):
-    bridge = SlamBridge(FakeSequence(), FakeFrontend({0: 0, 1: 2}), progress=False)
+    frontend, seq = FakeFrontend({0: 0, 1: 2}), FakeSequence()
+    run = RunState(seq, InterleavedSource(frontend, seq))
+    bridge = SlamBridge(run, feed_until=0.2, frames_per_step=None, min_initial_keyframes=1, progress=False, cache_frames=4)
     mapper = RecordingMapper(uses_depth)
     bridge._keep_depth = mapper.uses_depth  # what on_train_start reads
-    for _ in range(3):
-        bridge._feed_one()
+    run.source.track(3)
     assert sorted(bridge._cache) == [0, 1, 2] and all(d.image.dtype == torch.uint8 for d in bridge._cache.values())
     bridge._push(MapUpdate(new_keyframes=[1], poses={1: _pose(0.5)}), mapper)
     (view,) = mapper.calls[0][1]

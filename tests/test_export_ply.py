@@ -7,19 +7,19 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData
-from torch.utils.data import DataLoader
 
 from segs.modules.scene_model import View
 from segs.modules.sh import C0, eval_sh
 from segs.raster import rasterize
-from segs.train import StepDataset, build
+from segs.train import build, step_batches
 
 
 def _trained(tiny_cfg, *overrides):
     cfg = tiny_cfg("trainer.max_steps=40", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false", *overrides)
     torch.manual_seed(0)
-    _, _, module, _, trainer = build(cfg)
-    trainer.fit(module, DataLoader(StepDataset(40), batch_size=None))
+    t = build(cfg)
+    module, trainer = t.module, t.trainer
+    trainer.fit(module, step_batches(40))
     return module
 
 

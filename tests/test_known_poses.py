@@ -4,14 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
 from segs.errors import ConfigError
-from segs.slam.known_poses import KnownPosesFrontend
 
 
 def _run(sensor: str, frames: int = 24, **kw):
     seq = SyntheticSequence(sensor=sensor, n_frames=60, width=160, height=120, trajectory="loop", seed=1)
-    fe = KnownPosesFrontend(seq.camera, sensor, keyframe_every=2, kf_translation=10.0, kf_rotation_deg=90, n_features=400, **kw)
+    fe = slam_frontend(seq.camera, sensor, "known_poses", keyframe_every=2, kf_translation=10.0, kf_rotation_deg=90, n_features=400, **kw)
     for i in range(frames):
         fe.process(seq[i])
     return seq, fe, fe.poll()
@@ -63,7 +63,7 @@ def test_points_are_not_lifted_twice():
 
 def test_frames_without_ground_truth_are_reported_lost():
     seq = SyntheticSequence(sensor="rgbd", n_frames=4, width=64, height=48)
-    fe = KnownPosesFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd", "known_poses")
     frames = list(seq)
     frames[2].pose_c2w = None
     results = [fe.process(f) for f in frames]
@@ -73,4 +73,4 @@ def test_frames_without_ground_truth_are_reported_lost():
 def test_bad_parameters_raise_config_errors():
     cam = SyntheticSequence(sensor="rgbd", n_frames=2, width=64, height=48).camera
     with pytest.raises(ConfigError, match="keyframe_every"):
-        KnownPosesFrontend(cam, "rgbd", keyframe_every=0)
+        slam_frontend(cam, "rgbd", "known_poses", keyframe_every=0)

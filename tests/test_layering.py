@@ -19,6 +19,10 @@ FORBIDDEN = {
     # the web viewer reads the run (bridge, records, files) and the mapper through its contract;
     # it never drives SLAM, rasterizes or composes configs (segs.view, the entry point, does that)
     "viewer": ("segs.raster", "segs.slam", "segs.train", "segs.track", "segs.evaluation", "segs.report", "segs.config"),
+    # the runtime between SLAM and mapping: numpy and the Frontend interface, no torch (its child
+    # process imports it), never the mapper nor its callers
+    "pipeline": ("segs.modules", "segs.raster", "segs.callbacks", "segs.train", "segs.track", "segs.evaluation",
+                 "segs.viewer", "segs.report", "segs.config"),
     "map_points.py": ("segs.raster", "segs.slam", "segs.modules", "segs.data", "segs.callbacks", "segs.train", "segs.viewer"),
 }
 # what callbacks / evaluation / the viewer may import of segs.modules (records, protocol, image metrics)
@@ -129,15 +133,16 @@ def test_no_slam_module_imports_the_frontend():
 
 # segs.slam's stages (docs/architecture.md): a unit imports from segs.slam only itself and the units
 # of earlier layers; tracking (per frame) and backend (per keyframe) never import each other (orb.py
-# wires them), the frame loops (runtime) see only the Frontend interface. The top-level modules of
+# wires them). The top-level modules of
 # SLAM_SHARED are one unit; every subpackage or module of segs.slam must be listed here.
 SLAM_SHARED = {"base", "config", "geometry", "outbox", "sensor", "state"}
 SLAM_LAYERS = (
     ("native",),  # C++ kernels
     ("shared",),  # the Frontend interface and MapUpdate, parameters, sensor, geometry, outbox
-    ("features", "runtime"),  # per frame, ahead of tracking; the frame loops around any Frontend
+    ("features",),  # per frame, ahead of tracking
     ("map", "estimation"),  # shared state; matching and optimisation shared by the stages
     ("tracking", "backend"),  # per frame; per keyframe
+    ("orb_state",),  # the ORB frontend's checkpoint state (every part's records as arrays)
     ("orb", "known_poses"),  # the frontends
 )
 

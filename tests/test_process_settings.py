@@ -99,7 +99,7 @@ SRC = ROOT / "src" / "segs"
 # programs whose imports load torch: the guarded call is their first statement
 TORCH_PROGRAMS = ("train.py", "view.py")
 # programs whose imports do not: the call opens their __main__ block
-PROGRAMS = ("track.py", "slam/runtime/process.py", "slam/backend/ba_process.py", "slam/map/vocabulary.py")
+PROGRAMS = ("track.py", "pipeline/process.py", "slam/backend/ba_process.py", "slam/map/vocabulary.py")
 
 
 def _main_blocks(path: Path) -> list[tuple[int, ast.If]]:

@@ -53,6 +53,30 @@ def test_signal_stops_at_a_step_boundary_and_the_run_resumes(tmp_path, sig, code
     assert metrics["iterations"] == max(60, step + 20) and metrics["status"] == "finished"
 
 
+class SignalProbe(L.Callback):
+    """Records who handles SIGINT / SIGTERM at each step (test_the_interrupt_is_the_one_signal_handler)."""
+
+    seen: list = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        SignalProbe.seen.append((signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)))
+
+
+def test_the_interrupt_is_the_one_signal_handler(tiny_cfg):
+    """Lightning registers a SIGTERM handler of its own in fit (SIGTERMException, exit 0): during
+    training both signals go to segs.callbacks.interrupt only, and are given back after the run."""
+    from segs.callbacks.interrupt import GracefulInterrupt
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    SignalProbe.seen = []
+    run(tiny_cfg("trainer.max_steps=5", "+callbacks.probe._target_=test_reliability.SignalProbe", "eval.enabled=false"))
+    handlers = {h for pair in SignalProbe.seen for h in pair}
+    assert len(SignalProbe.seen) == 5 and len(handlers) == 1
+    (handler,) = handlers
+    assert isinstance(handler.__self__, GracefulInterrupt) and handler.__name__ == "_handler"
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
 class _Boom(RuntimeError):
     pass
 
@@ -79,7 +103,7 @@ def test_run_checkpoints_are_written_straight_to_their_file(tiny_cfg, tmp_path, 
     from segs.callbacks.checkpoint import DirectCheckpointIO
     from segs.train import build
 
-    _seq, _fe, _module, _bridge, trainer = build(tiny_cfg(out=tmp_path / "run"))
+    trainer = build(tiny_cfg(out=tmp_path / "run")).trainer
     assert isinstance(trainer.strategy.checkpoint_io, DirectCheckpointIO)
     saved = []
     monkeypatch.setattr(torch, "save", lambda obj, f, **kw: saved.append(f))

@@ -77,13 +77,13 @@ def test_bad_schedule_values_are_config_errors():
 
 
 def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
-    from torch.utils.data import DataLoader
-
-    from segs.train import StepDataset, build
+    
+    from segs.train import build, step_batches
 
     cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25",
                    "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")  # fmt: skip
-    _, _, module, _, trainer = build(cfg)
+    t = build(cfg)
+    module, trainer = t.module, t.trainer
     seen = []
     render = module.render
 
@@ -92,6 +92,6 @@ def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
         return render(view, step)
 
     module.render = spy
-    trainer.fit(module, DataLoader(StepDataset(40), batch_size=None))
+    trainer.fit(module, step_batches(40))
     assert seen[:10] == [(24, 18)] * 10 and seen[10:20] == [(48, 36)] * 10 and seen[20:] == [(96, 72)] * 20
     assert np.isfinite(module.loss_history).all() and len(module.loss_history) == 40

@@ -62,6 +62,37 @@ def test_a_run_interrupted_at_a_step_and_resumed_is_the_uninterrupted_run(uninte
     assert len(torch.load(out / "checkpoints" / "final.ckpt", weights_only=False)["segs_run"]["iteration_ms"]) == 200
 
 
+# the ORB frontend on 16 synthetic frames, fed over 160 steps of a 120-step run: interrupted at
+# step 40 with frames still to track, and training ends before the sequence does
+ORB = ["+experiment=synthetic", "data.n_frames=16", "data.width=320", "data.height=240", "data.trajectory=orbit",
+       "data.speed=0.2", "trainer.max_steps=120", "callbacks.slam_bridge.frames_per_step=0.1",
+       "callbacks.slam_bridge.min_initial_keyframes=2", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.save_renders=0",
+       "eval.write_ply=false", "eval.progress=false", "logger=none", "callbacks.slam_bridge.progress=false",
+       "~callbacks.progress_bar", "trainer.enable_progress_bar=false"]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_an_orb_run_interrupted_mid_sequence_and_resumed_is_the_uninterrupted_run(tmp_path):
+    from segs.config import compose
+
+    make = lambda *o, out: compose(ORB + list(o), output_dir=str(out))  # noqa: E731
+    whole = run(make(out=tmp_path / "whole"))
+    out = tmp_path / "resumed"
+    with pytest.raises(SystemExit):
+        run(make("+callbacks.signal_at._target_=test_resume.SignalAt", "+callbacks.signal_at.step=40", out=out))
+    ckpt = out / "checkpoints" / "last.ckpt"
+    from conftest import instances_in
+
+    saved = torch.load(ckpt, weights_only=False)["callbacks"]["SlamBridge"]["run"]
+    assert 2 < saved["source"]["cursor"] < 16 and saved["source"]["frontend"]["kind"] == "orb"  # mid-sequence
+    assert not instances_in(saved)
+    resumed = run(make(f"ckpt_path={ckpt}", out=out))
+    for name in ("trajectory.txt", "map_points.ply"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+    assert resumed["keyframes"] == whole["keyframes"] and resumed["training_views"] == whole["training_views"]
+    assert resumed["anchors"] == whole["anchors"] and resumed["psnr"] == pytest.approx(whole["psnr"], abs=0.05)
+
+
 def test_metrics_of_a_run_resumed_from_its_final_checkpoint_describe_the_whole_run(uninterrupted, tmp_path):
     make, whole, out = uninterrupted
     again = run(make(f"ckpt_path={out / 'checkpoints' / 'final.ckpt'}", out=tmp_path / "again"))

@@ -5,11 +5,11 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
+from segs.config import slam_frontend
 from segs.data.kitti import KittiSequence
-from segs.slam.config import FeatureConfig
+from segs.pipeline.sources import run_sequence
+from segs.slam.config import group_from_yaml
 from segs.slam.features.extractor import OrbExtractor
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate, step_scale
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,7 +30,7 @@ def test_monocular_keeps_its_scale_on_a_forward_drive(kitti_root):
     essential-matrix odometry's on the same frames (bench/mono_forward.py; 0.57 m). The map once
     started 80 degrees off the true motion and lost 6x of its scale within 5 frames (3.23 m)."""
     seq = KittiSequence(kitti_root, sensor="mono")
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     run_sequence(fe, seq)
     traj = fe.trajectory()
     assert sorted(traj) == list(range(len(seq))) and fe.lost_frames() == []
@@ -39,5 +39,5 @@ def test_monocular_keeps_its_scale_on_a_forward_drive(kitti_root):
     rmse = ate(seq.timestamps, traj, seq.gt_poses, "sim3")["rmse"]
     assert rmse < 0.5
     two_view, _, _ = _two_view_odometry()((seq[i] for i in range(len(seq))), seq.camera.K,
-                                       OrbExtractor.from_config(FeatureConfig()))  # fmt: skip
+                                       OrbExtractor.from_config(group_from_yaml("features")))  # fmt: skip
     assert rmse < ate(seq.timestamps, two_view, seq.gt_poses, "sim3")["rmse"]

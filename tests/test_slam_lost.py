@@ -1,9 +1,9 @@
 """Lost tracking: blank frames are reported lost; tracking restarts or relocalizes cleanly."""
 from __future__ import annotations
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.trajectory import ate
 
 
@@ -11,7 +11,7 @@ def test_blank_stretch_is_reported_and_recovered():
     # 1.2 laps, as tests/test_slam_rgbd.py: enough keyframes revisit the start for a detection
     seq = SyntheticSequence(sensor="rgbd", n_frames=72, width=320, height=240, trajectory="loop", speed=71 / 59,
                             blank_frames=[(20, 26)], seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     run = run_sequence(fe, seq)
     lost = fe.lost_frames()
     assert set(range(20, 26)) <= set(lost)
@@ -29,7 +29,7 @@ def test_blank_stretch_is_reported_and_recovered():
 def test_blank_start_and_relocalization_without_restart():
     seq = SyntheticSequence(sensor="rgbd", n_frames=30, width=320, height=240, trajectory="orbit", speed=0.3,
                             blank_frames=[(0, 3), (12, 15)], seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd", tracking={"restart_after_lost": 0})
+    fe = slam_frontend(seq.camera, "rgbd", tracking={"restart_after_lost": 0})
     run_sequence(fe, seq)
     lost = fe.lost_frames()
     assert {0, 1, 2, 12, 13, 14} <= set(lost)
@@ -55,7 +55,7 @@ def test_depth_poor_start_waits_init_wait_frames_then_starts_with_fewer_points()
 
     frames = [depth_poor(i) for i in range(len(seq))]
     for late, first in ((150, 10), (500, None)):
-        fe = OrbFrontend(seq.camera, "rgbd", tracking={"init_wait": 10, "min_init_points_late": late},
+        fe = slam_frontend(seq.camera, "rgbd", tracking={"init_wait": 10, "min_init_points_late": late},
                          init={"depth_scale_points": 0})
         for f in frames if first else frames[:14]:  # 500: past init_wait is enough to show it
             fe.process(f)
@@ -79,11 +79,11 @@ def test_depth_poor_start_from_two_views_is_metric():
     seq = apply_stress(base, "depth_holes", 0.9)
     frames = [seq[i] for i in range(len(seq))]
     assert max(int((f.depth > 0).mean() * 1000) for f in frames) < 150  # under 15 % of the pixels
-    off = OrbFrontend(seq.camera, "rgbd", init={"depth_scale_points": 0})
+    off = slam_frontend(seq.camera, "rgbd", init={"depth_scale_points": 0})
     for f in frames[:30]:
         off.process(f)
     assert not off.trajectory()
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     for f in frames:
         fe.process(f)
     traj = fe.trajectory()

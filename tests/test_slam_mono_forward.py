@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
+from segs.pipeline.sources import run_sequence
 from segs.slam.geometry import cam_center
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
 from segs.trajectory import ate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,7 +31,7 @@ def test_forward_corridor_keeps_scale():
     two-view initialization tracked, ATE under 1 % of the 24 m path, and the estimated / true
     step-length ratio the same at the end as at the start (no scale collapse or drift)."""
     seq = SyntheticSequence(sensor="mono", n_frames=50, width=640, height=480, trajectory="forward", speed=1.0)
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     run_sequence(fe, seq)
     traj = fe.trajectory()
     first = min(traj)
@@ -54,7 +54,7 @@ def test_two_view_initialization_recovers_the_motion(trajectory, pair):
     degrees in translation direction on the loop pair): rotation within 0.5 degree, translation
     direction within 5 degrees, and triangulated depths consistent with the baseline (one scale)."""
     seq = SyntheticSequence(sensor="rgbd", n_frames=90, width=320, height=240, trajectory=trajectory)
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     fa, fb = seq[pair[0]], seq[pair[1]]
     init = fe.tracker.mono_init
     assert init.try_initialize(fe.builder.build(fa)) is None
@@ -104,16 +104,16 @@ def test_monocular_bundle_adjustment_keeps_the_gauge_scale():
 def test_monocular_local_bundle_adjustment_holds_the_scale():
     """Local and global BA of a young monocular map (only the origin fixed) leave its scale."""
     seq = SyntheticSequence(sensor="mono", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3)
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     run_sequence(fe, seq)
     m = fe.map
     assert len(m.kfs) >= 3
-    _, fixed, points, *_ = fe.mapper._build_problem(sorted(m.kfs), 0)
+    _, fixed, points, *_ = fe.local_mapping._build_problem(sorted(m.kfs), 0)
     assert fixed == {m.origin_kf}
     c0 = m.kfs[m.origin_kf].center
     spread = lambda: np.median(np.linalg.norm(m.pos[points.pid] - c0, axis=1))  # noqa: E731
     before = spread()
-    fe.mapper.global_ba(None, iterations=10)
+    fe.local_mapping.global_ba(None, iterations=10)
     assert spread() == pytest.approx(before, rel=1e-6)
 
 
@@ -129,9 +129,9 @@ def test_two_view_baseline_recovers_each_step():
     bench = _bench_module()
     seq = SyntheticSequence(sensor="mono", n_frames=8, width=320, height=240, trajectory="forward", speed=0.3)
     frames = [seq[i] for i in range(len(seq))]
-    from segs.slam.config import FeatureConfig
+    from segs.slam.config import group_from_yaml
     from segs.slam.features.extractor import OrbExtractor
-    fc = FeatureConfig()
+    fc = group_from_yaml("features")
     ex = OrbExtractor.from_config(fc)
     traj, failed, seconds = bench.two_view_odometry(frames, seq.camera.K, ex)
     assert failed == 0 and seconds > 0 and sorted(traj) == list(range(len(seq)))
@@ -153,7 +153,7 @@ def test_monocular_pacing_holds_a_slow_view_and_yields_to_a_turning_one():
     seq = SyntheticSequence(sensor="mono", n_frames=40, width=320, height=240, trajectory="orbit", speed=0.5)
     runs = {}
     for name, gap, deg in (("unpaced", 0, 3.0), ("default", 5, 3.0), ("paced", 5, 0.0)):
-        fe = OrbFrontend(seq.camera, "mono", tracking={"kf_min_gap_mono": gap, "kf_view_change_deg_mono": deg})
+        fe = slam_frontend(seq.camera, "mono", tracking={"kf_min_gap_mono": gap, "kf_view_change_deg_mono": deg})
         run_sequence(fe, seq)
         runs[name] = (len(fe.keyframe_frames()), ate(seq.timestamps, fe.trajectory(), seq.gt_poses, "sim3")["rmse"])
     assert runs["default"] == runs["unpaced"]

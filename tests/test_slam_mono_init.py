@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from segs.config import slam_frontend
 from segs.data.seven_scenes import SevenScenesSequence
 from segs.data.synthetic import SyntheticSequence
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.trajectory import ate
 
 
@@ -16,7 +16,7 @@ def test_frames_waiting_for_the_initialization_are_tracked_afterwards():
     degrees; the frames in between are reported lost while waiting, then get poses against the
     initial map (trajectory() only, no keyframes), as accurate as the frames tracked after the start."""
     seq = SyntheticSequence(sensor="mono", n_frames=200, width=320, height=240, trajectory="orbit", speed=0.3)
-    fe = OrbFrontend(seq.camera, "mono", init={"min_parallax_deg": 4.0})  # the default 1.0 starts at once
+    fe = slam_frontend(seq.camera, "mono", init={"min_parallax_deg": 4.0})  # the default 1.0 starts at once
     n = 24
     run = run_sequence(fe, seq, frames=range(n))
     kf_frames = set(fe.keyframe_frames().values())
@@ -37,7 +37,7 @@ def test_seven_scenes_monocular_slice_holds_its_scale(seven_scenes_root):
     the trajectory's scale the same over the second half as over the first (a distorted initial
     map shrank it 3x within 100 frames before the 4-degree initial parallax)."""
     seq = SevenScenesSequence(root=seven_scenes_root, sensor="mono", frames=[0, 100])
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     run_sequence(fe, seq)
     traj = fe.trajectory()
     assert sorted(traj) == list(range(len(seq)))

@@ -1,5 +1,6 @@
-"""OrbFrontend checkpoints written before segs.slam's stages became subpackages still load: their
-blob pickles classes under the former module names (segs.slam.map, segs.slam.tracking, ...)."""
+"""OrbFrontend checkpoints written before segs.slam's stages became subpackages still load
+(converted to segs.state.v3): their blob pickles classes under the former module names
+(segs.slam.map, segs.slam.tracking, ...)."""
 from __future__ import annotations
 
 import contextlib
@@ -12,9 +13,11 @@ import types
 import numpy as np
 import pytest
 
+from conftest import orb_v2_state
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
-from segs.slam.orb import MOVED_MODULES, OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
+from segs.slam.orb_state import MOVED_MODULES
 
 
 @contextlib.contextmanager
@@ -35,10 +38,10 @@ def _former_module_names(monkeypatch):
 
 def test_a_checkpoint_naming_the_former_modules_loads_and_tracks_on(monkeypatch):
     seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     run_sequence(fe, seq, frames=range(6))
     with _former_module_names(monkeypatch):
-        state = fe.state_dict()
+        state = orb_v2_state(fe)
     blob = state["blob"]
     # the stream names the former modules, never the new ones
     for old in ("segs.slam.map", "segs.slam.vocabulary", "segs.slam.features", "segs.slam.frame_poses", "segs.slam.tracking"):
@@ -47,7 +50,7 @@ def test_a_checkpoint_naming_the_former_modules_loads_and_tracks_on(monkeypatch)
     with pytest.raises((ModuleNotFoundError, AttributeError)):
         pickle.loads(blob)  # what the plain unpickler makes of it
 
-    old_fe = OrbFrontend(seq.camera, "rgbd")
+    old_fe = slam_frontend(seq.camera, "rgbd")
     old_fe.load_state_dict(state)
     assert type(old_fe.map).__module__ == "segs.slam.map.map"
     assert old_fe.keyframe_frames() == fe.keyframe_frames()

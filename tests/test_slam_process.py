@@ -9,11 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from segs.config import compose, instantiate, make_frontend, make_sequence
+from conftest import instances_in
+from segs.config import compose, instantiate, make_sequence, make_source
 from segs.errors import ConfigError, DataError
+from segs.pipeline.process import LiveSource, ProcessSource
+from segs.pipeline.readers import CameraFrames, next_live
+from segs.pipeline.sources import run_sequence
 from segs.slam.base import MapUpdate
-from segs.slam.runtime.process import FrontendProcess, _next_live
-from segs.slam.runtime.runner import run_sequence
 
 BASE = ["+experiment=synthetic", "data.n_frames=16", "data.width=320", "data.height=240",
         "data.trajectory=orbit", "data.speed=0.2"]
@@ -26,10 +28,10 @@ def _setup(tmp_path, *extra):
     return cfg, seq, factory
 
 
-def _drain(fe: FrontendProcess) -> MapUpdate:
+def _drain(fe: ProcessSource) -> MapUpdate:
     up = MapUpdate()
-    while not fe.done():
-        up = up.merge(fe.poll(timeout=0.2))
+    while not fe.exhausted():
+        up = up.merge(fe.track(timeout=0.2))
     return up
 
 
@@ -37,7 +39,7 @@ def test_process_mode_gives_the_in_process_trajectory_and_updates(tmp_path):
     _, seq, factory = _setup(tmp_path)
     ref_fe = factory()
     ref = run_sequence(ref_fe, seq)
-    fe = FrontendProcess(factory, seq, "process")
+    fe = ProcessSource(factory, seq)
     try:
         up = _drain(fe)
         assert fe.frames_done == len(seq) and fe.dropped_frames() == []
@@ -48,24 +50,22 @@ def test_process_mode_gives_the_in_process_trajectory_and_updates(tmp_path):
         assert up.new_keyframes == ref.update.new_keyframes
         assert np.array_equal(up.points, ref.update.points)
         assert fe.stats()["keyframes"] == len(ref_fe.keyframe_frames())
-        with pytest.raises(TypeError, match="child process"):
-            fe.process(seq[0])
     finally:
         fe.close()
 
 
 def test_a_checkpoint_mid_sequence_resumes_without_losing_or_repeating_updates(tmp_path):
     _, seq, factory = _setup(tmp_path)
-    fe = FrontendProcess(factory, seq, "process")
+    fe = ProcessSource(factory, seq)
     first = MapUpdate()
     try:
-        while len(fe.keyframe_frames()) < 3 and not fe.done():
-            first = first.merge(fe.poll(timeout=0.2))
+        while len(fe.keyframe_frames()) < 3 and not fe.exhausted():
+            first = first.merge(fe.track(timeout=0.2))
         state = fe.state_dict()  # the child may have tracked more: those updates travel in the state
     finally:
         fe.close()
-    assert not fe.done()
-    resumed = FrontendProcess(factory, seq, "process")
+    assert not fe.exhausted() and not instances_in(state) and state["frontend"]["kind"] == "orb"
+    resumed = ProcessSource(factory, seq)
     resumed.load_state_dict(state)
     try:
         second = _drain(resumed)
@@ -84,7 +84,7 @@ def test_a_checkpoint_mid_sequence_resumes_without_losing_or_repeating_updates(t
 def test_live_mode_drops_the_frames_it_is_too_slow_for(tmp_path):
     _, seq, factory = _setup(tmp_path)
     # 200x real time: the 16 frames (0.5 s at 30 Hz) arrive within a few milliseconds
-    fe = FrontendProcess(factory, seq, "live", rate=200.0)
+    fe = LiveSource(factory, seq, rate=200.0)
     try:
         _drain(fe)
     finally:
@@ -165,7 +165,7 @@ def test_a_reader_process_from_a_script_without_a_main_guard_fails_at_once(tmp_p
     script = tmp_path / "unguarded.py"
     script.write_text(
         "from segs.config import compose, instantiate, make_sequence\n"
-        "from segs.slam.runtime.runner import run_sequence\n"
+        "from segs.pipeline.sources import run_sequence\n"
         f"cfg = compose({BASE + ['data.n_frames=4']!r}, output_dir={str(tmp_path)!r})\n"
         "seq = make_sequence(cfg.data)\n"
         "run_sequence(instantiate(cfg.slam)(camera=seq.camera, sensor=seq.sensor), seq, prefetch=2, reader='process')\n")
@@ -177,8 +177,6 @@ def test_a_reader_process_from_a_script_without_a_main_guard_fails_at_once(tmp_p
 def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):
     import threading
 
-    from segs.slam.runtime.process import _FrameSource
-
     _, seq, _ = _setup(tmp_path)
     threads = []
 
@@ -186,10 +184,7 @@ def test_the_frame_source_prepares_frames_in_its_own_thread(tmp_path):
         threads.append(threading.get_ident())
         return ("prepared", frame.index)
 
-    source = _FrameSource(seq, 3, live=False, rate=1.0, prepare=prepare)
-    got = []
-    while (item := source.next()[0]) is not None:
-        got.append(item)
+    got = [item for item, _, _ in CameraFrames(seq, 3, live=False, rate=1.0, prepare=prepare)]
     assert got == [("prepared", i) for i in range(3, len(seq))]
     assert len(threads) == len(seq) - 3 and threading.get_ident() not in threads
 
@@ -199,17 +194,17 @@ def test_live_pacing_waits_for_a_frame_and_skips_past_ones():
     import time
 
     t0 = time.perf_counter()
-    assert _next_live(ts, 0, t0, 0.0, 1.0) == (0, [])
-    assert _next_live(ts, 1, t0 - 0.2, 0.0, 1.0) == (6, [1, 2, 3, 4, 5])  # 0.2 s late: frame 6 is due
-    assert _next_live(ts, 9, t0 - 5.0, 0.0, 1.0) == (9, [])  # never past the last frame
+    assert next_live(ts, 0, t0, 0.0, 1.0) == (0, [])
+    assert next_live(ts, 1, t0 - 0.2, 0.0, 1.0) == (6, [1, 2, 3, 4, 5])  # 0.2 s late: frame 6 is due
+    assert next_live(ts, 9, t0 - 5.0, 0.0, 1.0) == (9, [])  # never past the last frame
     t = time.perf_counter()
-    assert _next_live(ts, 3, t, 0.0, 1.0) == (3, [])  # early: waits about 0.1 s
+    assert next_live(ts, 3, t, 0.0, 1.0) == (3, [])  # early: waits about 0.1 s
     assert time.perf_counter() - t > 0.08
 
 
 def test_a_failing_child_raises_in_the_parent(tmp_path):
     _, seq, _ = _setup(tmp_path)
-    fe = FrontendProcess(functools.partial(int, "not a frontend"), seq, "process")
+    fe = ProcessSource(functools.partial(int, "not a frontend"), seq)
     try:
         with pytest.raises(RuntimeError, match="ValueError"):
             _drain(fe)
@@ -243,4 +238,4 @@ def test_track_and_train_run_with_the_frontend_in_a_process(tmp_path):
     saved = json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text())
     assert saved["status"] == "finished" and saved["frames_tracked"] == 16
     assert saved["frames_dropped_live"] == 0 and np.isfinite(m["psnr"]) and m["ate_rmse_m"] < 0.05
-    assert isinstance(make_frontend(cfg, make_sequence(cfg.data)), FrontendProcess)
+    assert isinstance(make_source(cfg, make_sequence(cfg.data)), ProcessSource)

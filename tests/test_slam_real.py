@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from segs.config import slam_frontend
 from segs.data.euroc import EurocSequence
 from segs.data.tum import TumSequence
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.trajectory import ate
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"
@@ -38,7 +38,7 @@ def test_tum_cabinet_tracks_without_error(sensor, frames, min_tracked):
     """The defaults on texture-poor, heavily compressed JPEGs (datasets/tum_fr3_cabinet_kf/README.md):
     their corners come from the third FAST pass (RGB-D tracked 20 of 58 frames without it)."""
     seq = TumSequence(DATA / "tum_fr3_cabinet_kf", sensor=sensor)
-    fe = OrbFrontend(seq.camera, sensor)
+    fe = slam_frontend(seq.camera, sensor)
     run = run_sequence(fe, seq, frames=range(frames))
     traj = _check_run(fe, seq, run, frames)
     assert len(traj) >= min_tracked
@@ -53,7 +53,7 @@ def test_tum_cabinet_rgbd_depth_tolerant_retry():
     seq = TumSequence(DATA / "tum_fr3_cabinet_kf", sensor="rgbd")
     fes = {}
     for k in (0.0, 0.012):
-        fes[k] = OrbFrontend(seq.camera, "rgbd", tracking={"rgbd_retry_depth_noise": k})
+        fes[k] = slam_frontend(seq.camera, "rgbd", tracking={"rgbd_retry_depth_noise": k})
         run_sequence(fes[k], seq, frames=range(6))
     assert 1 in fes[0.0].lost_frames() and fes[0.0].stats()["depth_retries"] == 0
     fe = fes[0.012]
@@ -64,7 +64,7 @@ def test_tum_cabinet_rgbd_depth_tolerant_retry():
 
 def test_euroc_stereo_pairs_track_at_rest():
     seq = EurocSequence(DATA / "euroc_v101_micro", sensor="stereo")
-    fe = OrbFrontend(seq.camera, "stereo")
+    fe = slam_frontend(seq.camera, "stereo")
     run = run_sequence(fe, seq)
     traj = _check_run(fe, seq, run)
     assert len(traj) == len(seq)

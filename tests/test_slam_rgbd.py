@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.trajectory import ate
 
 
@@ -16,7 +16,7 @@ def rgbd_loop():
     # consistent loop detections; a single lap closes on its last two keyframes only
     seq = SyntheticSequence(sensor="rgbd", n_frames=72, width=320, height=240, trajectory="loop", speed=71 / 59,
                             seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     return seq, fe, run_sequence(fe, seq)
 
 
@@ -82,7 +82,7 @@ def test_single_thread_mode_is_deterministic():
     seq = SyntheticSequence(sensor="rgbd", n_frames=16, width=320, height=240, trajectory="loop", seed=1)
     trajs = []
     for _ in range(2):
-        fe = OrbFrontend(seq.camera, "rgbd")
+        fe = slam_frontend(seq.camera, "rgbd")
         run_sequence(fe, seq)
         trajs.append(fe.trajectory())
     assert trajs[0].keys() == trajs[1].keys()

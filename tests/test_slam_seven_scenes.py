@@ -2,9 +2,9 @@
 where ../shared/data lacks them)."""
 from __future__ import annotations
 
+from segs.config import slam_frontend
 from segs.data.seven_scenes import SevenScenesSequence
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.trajectory import ate
 
 
@@ -15,7 +15,7 @@ def test_seven_scenes_rgbd_lower_keyframe_ratio_keeps_tracking(seven_scenes_root
     0.75, makes 37 here because a frame tracks only 0.77 of its reference keyframe's points three
     frames on; docs/decisions/012-keyframe-ratio.md)."""
     seq = SevenScenesSequence(root=seven_scenes_root, sensor="rgbd", frames=[0, 150])
-    fe = OrbFrontend(seq.camera, "rgbd", tracking={"kf_ref_ratio": 0.65})
+    fe = slam_frontend(seq.camera, "rgbd", tracking={"kf_ref_ratio": 0.65})
     run_sequence(fe, seq)
     traj = fe.trajectory()
     assert sorted(traj) == list(range(len(seq))) and fe.lost_frames() == []

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import pytest
 
+from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from segs.pipeline.sources import run_sequence
 from segs.trajectory import ate
 
 
@@ -19,7 +19,7 @@ def stereo_loop():
 @pytest.mark.slow
 def test_stereo_loop_closing_reduces_drift(stereo_loop):
     seq = stereo_loop
-    fe = OrbFrontend(seq.camera, "stereo")
+    fe = slam_frontend(seq.camera, "stereo")
     snap: dict = {}
 
     def on_frame(frame, res):  # the trajectory just before and just after the loop correction
@@ -41,7 +41,7 @@ def test_stereo_loop_closing_reduces_drift(stereo_loop):
 
 def test_mono_scale_aligned_ate():
     seq = SyntheticSequence(sensor="mono", n_frames=60, width=320, height=240, trajectory="orbit", speed=0.5, seed=0)
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     run = run_sequence(fe, seq)
     traj = fe.trajectory()
     # two-view initialization: the frames before it are reported lost, never invented

@@ -76,7 +76,7 @@ def test_track_rejects_unknown_slam_keys_as_user_error(tmp_path):
     out = subprocess.run([sys.executable, "-m", "segs.track", *BASE, "+slam.tracking.no_such_key=1",
                           f"hydra.run.dir={tmp_path / 'cli'}"], capture_output=True, text=True)
     assert out.returncode == 2
-    assert out.stderr.strip().splitlines()[-1].startswith("error: slam.tracking: unknown key")
+    assert out.stderr.strip().splitlines()[-1].startswith("error: slam.tracking.no_such_key: unknown key")
     assert "Traceback" not in out.stderr
 
 

@@ -19,9 +19,10 @@ from segs.slam.estimation.matching import knn_hamming
 from segs.slam.backend.ba_process import BundleAdjusterProcess
 from segs.slam.estimation.optimize import (BundleAdjuster, Observations, PointSet, _pose_system, _se3_exp, _sim3, _sim3_matrix, pose_graph,
                                 refine_pose)
-from segs.slam.orb import OrbFrontend
-from segs.slam.runtime.runner import run_sequence
+from conftest import orb_v2_state
+from segs.pipeline.sources import run_sequence
 from segs.slam.map.vocabulary import Vocabulary, bow_score
+from segs.config import slam_frontend
 
 ROOT = Path(__file__).resolve().parents[1]
 K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
@@ -287,7 +288,7 @@ def test_native_map_bookkeeping_equals_python():
     if kernels() is None:
         pytest.skip("the C++ SLAM kernel cannot be built here (no compiler)")
     seq = SyntheticSequence(sensor="mono", n_frames=40, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
-    fe = OrbFrontend(seq.camera, "mono")
+    fe = slam_frontend(seq.camera, "mono")
     run_sequence(fe, seq)
     m = fe.map
     kfs = sorted(m.kfs)
@@ -521,7 +522,7 @@ def test_mono_two_view_reconstruction():
     T2 = _pose([0.0, -0.05, 0.0], [-0.3, 0.02, 0.0])
     x1, _ = _project(np.eye(4), P)
     x2, _ = _project(T2, P)
-    init = MonoInitializer(C.InitConfig(), K, 1.2 ** (2 * np.arange(8)))
+    init = MonoInitializer(C.group_from_yaml("init"), K, 1.2 ** (2 * np.arange(8)))
     res = init.reconstruct(x1 + rng.normal(0, 0.3, x1.shape), x2 + rng.normal(0, 0.3, x2.shape), np.ones(300))
     assert res is not None
     w2c, X, good = res
@@ -555,14 +556,14 @@ def test_mono_two_view_forward_motion_with_far_points():
     x1 = x1[inside] + rng.normal(0, 0.5, (inside.sum(), 2))
     x2 = x2[inside] + rng.normal(0, 0.5, (inside.sum(), 2))
     sig2 = np.ones(inside.sum())
-    res = MonoInitializer(C.InitConfig(), Kk, 1.2 ** (2 * np.arange(8))).reconstruct(x1, x2, sig2)
+    res = MonoInitializer(C.group_from_yaml("init"), Kk, 1.2 ** (2 * np.arange(8))).reconstruct(x1, x2, sig2)
     assert res is not None
     w2c, X, good = res
     t = T2[:3, 3] / np.linalg.norm(T2[:3, 3])
     assert np.degrees(np.arccos(np.clip(w2c[:3, 3] @ t, -1, 1))) < 2.0
     is_far = np.r_[np.zeros(len(near), bool), np.ones(len(far), bool)][inside]
     assert good[~is_far].mean() > 0.6 and good[is_far].mean() < 0.2
-    strict = MonoInitializer(C.InitConfig(min_parallax_deg=30.0), Kk, 1.2 ** (2 * np.arange(8)))
+    strict = MonoInitializer(C.group_from_yaml("init", min_parallax_deg=30.0), Kk, 1.2 ** (2 * np.arange(8)))
     assert strict.reconstruct(x1, x2, sig2) is None
 
 
@@ -579,30 +580,40 @@ def test_vocabulary_scores_same_place_higher(image):
     assert bow_score(ba, bb) > bow_score(ba, bo)
 
 
-def test_config_rejects_unknown_keys_and_yaml_matches_defaults():
+def test_config_rejects_unknown_and_missing_keys_naming_the_full_key():
     cam = SyntheticSequence(sensor="rgbd", n_frames=2, width=64, height=48).camera
     with pytest.raises(ConfigError):
-        OrbFrontend(cam, "rgbd", tracking={"no_such_key": 1})
+        slam_frontend(cam, "rgbd", tracking={"no_such_key": 1})
     with pytest.raises(ConfigError):
-        OrbFrontend(cam, "fisheye")
+        slam_frontend(cam, "fisheye")
     for key, value in (("ba_iterations", (0, 1)), ("ba_iterations", (4, -1)), ("ba_iterations_rgbd", (0, 0)),
                        ("ba_min_gain", 1.5), ("ba_window", 0),
                        ("triangulate_node_level", -1), ("triangulate_node_level", 9)):
-        with pytest.raises(ConfigError, match=f"slam.mapping.{key}"):
-            OrbFrontend(cam, "rgbd", mapping={key: value})
+        with pytest.raises(ConfigError, match=f"slam.local_mapping.{key}"):
+            slam_frontend(cam, "rgbd", local_mapping={key: value})
     for key, value in (("fast_threshold", 0), ("floor_fast_threshold", 300), ("n_features", 0)):
         with pytest.raises(ConfigError, match=f"slam.features.{key}"):
-            OrbFrontend(cam, "rgbd", features={key: value})
+            slam_frontend(cam, "rgbd", features={key: value})
     for key, value in (("rgbd_depth_noise", 0.0), ("rgbd_retry_depth_noise", -0.01), ("init_wait", -1),
                        ("min_init_points_late", 0)):
         with pytest.raises(ConfigError, match=f"slam.tracking.{key}"):
-            OrbFrontend(cam, "rgbd", tracking={key: value})
+            slam_frontend(cam, "rgbd", tracking={key: value})
     conf = yaml.safe_load((ROOT / "conf/slam/orb.yaml").read_text())
-    assert conf["_target_"] == "segs.slam.orb.OrbFrontend"
-    for group, cls in C.GROUPS.items():
-        default = C.build(cls, None, group)
-        from_yaml = C.build(cls, conf[group], group)
-        assert default == from_yaml, f"conf/slam/orb.yaml {group} differs from segs.slam.config defaults"
+    assert conf["_target_"] == "segs.slam.orb.OrbFrontend" and isinstance(C.slam_config(conf), C.OrbConfig)
+    for group in C.GROUPS:  # every key of a group is in the YAML: the dataclasses have no defaults
+        assert type(C.group_from_yaml(group)) is C.GROUPS[group]
+    bad = {**conf, "tracking": {**conf["tracking"], "min_inlier": 30}}
+    with pytest.raises(ConfigError, match=r"^slam\.tracking\.min_inlier: unknown key"):
+        C.slam_config(bad)
+    bad = {**conf, "tracking": {k: v for k, v in conf["tracking"].items() if k != "min_inliers"}}
+    with pytest.raises(ConfigError, match=r"^slam\.tracking\.min_inliers: missing key$"):
+        C.slam_config(bad)
+    with pytest.raises(ConfigError, match=r"^slam\.mapping was renamed: use slam\.local_mapping$"):
+        C.slam_config({**conf, "mapping": {"ba_window": 5}})
+    known = yaml.safe_load((ROOT / "conf/slam/known_poses.yaml").read_text())
+    assert isinstance(C.slam_config(known), C.KnownPosesConfig)
+    with pytest.raises(ConfigError, match=r"^slam\.no_such_key: unknown key"):
+        C.slam_config({**known, "no_such_key": 1})
 
 
 @pytest.mark.parametrize("sensor", ["rgbd", "stereo"])
@@ -617,7 +628,7 @@ def test_local_ba_iterations_follow_the_sensor(sensor, monkeypatch):
         return original(self, poses, fixed, points, obs, iterations, min_gain)
 
     monkeypatch.setattr(BundleAdjuster, "run_two_pass", spy)
-    fe = OrbFrontend(seq.camera, sensor, mapping={"ba_iterations": (3, 2), "ba_iterations_rgbd": (2, 0)})
+    fe = slam_frontend(seq.camera, sensor, local_mapping={"ba_iterations": (3, 2), "ba_iterations_rgbd": (2, 0)})
     run_sequence(fe, seq)
     assert len(seen) >= 2
     assert set(seen) == ({(2, 0)} if sensor == "rgbd" else {(3, 2)})
@@ -625,22 +636,22 @@ def test_local_ba_iterations_follow_the_sensor(sensor, monkeypatch):
 
 def test_triangulation_under_vocabulary_nodes_tracks_and_keeps_words():
     seq = SyntheticSequence(sensor="rgbd", n_frames=16, width=320, height=240, trajectory="orbit", speed=0.2, seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd", mapping={"triangulate_node_level": 1})
+    fe = slam_frontend(seq.camera, "rgbd", local_mapping={"triangulate_node_level": 1})
     run = run_sequence(fe, seq)
     assert all(r.tracked for r in run.results) and len(fe.map.kfs) >= 2
     kf1, kf2 = (fe.map.kfs[k] for k in sorted(fe.map.kfs)[:2])
     assert len(kf1.words) == len(kf1.kp)
-    n1, n2 = fe.mapper._nodes(kf1, kf2)
+    n1, n2 = fe.local_mapping._nodes(kf1, kf2)
     assert np.array_equal(n1, kf1.words // 1000) and n2.max() < 10  # k = 10, depth 4: level-1 nodes
     assert fe.vocab.bow(kf1.words)[0].tolist() == fe.kfdb.bows[kf1.kf_id][0].tolist()
 
 
 def test_threaded_mode_and_checkpoint_round_trip():
     seq = SyntheticSequence(sensor="rgbd", n_frames=24, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd", threaded=True)
+    fe = slam_frontend(seq.camera, "rgbd", threaded=True)
     run_sequence(fe, seq, frames=range(12))
     state = fe.state_dict()  # stops the mapping thread
-    single = OrbFrontend(seq.camera, "rgbd")
+    single = slam_frontend(seq.camera, "rgbd")
     single.load_state_dict(state)
     run = run_sequence(single, seq, frames=range(12, 24))
     assert single.lost_frames() == [] and sorted(single.trajectory()) == list(range(24))
@@ -659,15 +670,16 @@ def _as_legacy_v1(state: dict) -> dict:
     from segs.slam.tracking.tracker import Tracker
 
     d = pickle.loads(state["blob"])
+    d["tracker"] = dict(d["tracker"])
     poses = d["tracker"].pop("poses")
     traj = {i: ("abs", None, p.w2c) if p.kf_id is None else ("kf", p.kf_id) if p.rel is None else ("rel", p.kf_id, p.rel)
             for i, p in poses.poses.items()}  # fmt: skip
-    tracking = C.TrackingConfig()
+    tracking = C.group_from_yaml("tracking")
     for name in ("min_pose_inliers", "min_matches_ref", "local_map_ratio", "kf_min_tracked"):
         del tracking.__dict__[name]  # an old config: ignored (the loading frontend's own applies)
     objs = {}
-    for name, cls, cfg in (("tracker", Tracker, tracking), ("mapper", LocalMapper, C.MappingConfig()),
-                           ("loop", LoopCloser, C.LoopConfig())):
+    for name, cls, cfg in (("tracker", Tracker, tracking), ("mapper", LocalMapper, C.group_from_yaml("local_mapping")),
+                           ("loop", LoopCloser, C.group_from_yaml("loop"))):
         obj = cls.__new__(cls)  # what unpickling an old component does
         obj.__dict__.update(d[name], cfg=cfg)
         objs[name] = obj
@@ -685,15 +697,14 @@ def test_tracking_state_enum_round_trips_checkpoint():
     from segs.slam.tracking.tracker import TrackingState
 
     seq = SyntheticSequence(sensor="rgbd", n_frames=12, width=320, height=240, trajectory="orbit", speed=0.3, seed=0)
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     run_sequence(fe, seq, frames=range(6))
     assert fe.tracker.state is TrackingState.OK
-    state = fe.state_dict()
-    assert state["format"] == "segs.orb.v2"
-    new = OrbFrontend(seq.camera, "rgbd")
-    new.load_state_dict(state)
+    state = orb_v2_state(fe)
+    new = slam_frontend(seq.camera, "rgbd")
+    new.load_state_dict(fe.state_dict())
     assert new.tracker.state is TrackingState.OK
-    old_fe = OrbFrontend(seq.camera, "rgbd")
+    old_fe = slam_frontend(seq.camera, "rgbd")
     old_fe.load_state_dict(_as_legacy_v1(state))
     assert old_fe.tracker.state is TrackingState.OK
     assert old_fe.tracker.cfg.min_pose_inliers == 10
@@ -760,5 +771,5 @@ def test_triangulation_parallax_per_sensor():
     seq = SyntheticSequence(sensor="rgbd", n_frames=2, width=160, height=120, seed=0)
     mapping = {"min_parallax_deg": 1.0, "min_parallax_deg_mono": 3.0}
     for sensor, deg in (("mono", 3.0), ("rgbd", 1.0)):
-        fe = OrbFrontend(seq.camera, sensor, mapping=mapping)
-        assert fe.mapper.cos_parallax == pytest.approx(np.cos(np.radians(deg)))
+        fe = slam_frontend(seq.camera, sensor, local_mapping=mapping)
+        assert fe.local_mapping.cos_parallax == pytest.approx(np.cos(np.radians(deg)))

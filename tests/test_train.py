@@ -33,27 +33,27 @@ def test_short_training_lowers_loss_and_writes_every_output(tiny_cfg, tmp_path):
 
 
 def test_loss_decreases(tiny_cfg):
-    from torch.utils.data import DataLoader
-
-    from segs.train import StepDataset, build
+    
+    from segs.train import build, step_batches
 
     cfg = tiny_cfg("trainer.max_steps=80", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")
     torch.manual_seed(0)
-    _, _, module, _, trainer = build(cfg)
-    trainer.fit(module, DataLoader(StepDataset(80), batch_size=None))
+    t = build(cfg)
+    module, trainer = t.module, t.trainer
+    trainer.fit(module, step_batches(80))
     h = module.loss_history
     assert len(h) == 80
     assert sum(h[-10:]) / 10 < 0.85 * sum(h[:10]) / 10
 
 
 def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_path):
-    from torch.utils.data import DataLoader
-
-    from segs.train import StepDataset, build
+    
+    from segs.train import build, step_batches
 
     first = tiny_cfg("trainer.max_steps=30", "callbacks.periodic_checkpoint.every_n_steps=20", "eval.enabled=false", out=tmp_path / "a")
-    _, _, module, _, trainer = build(first)
-    trainer.fit(module, DataLoader(StepDataset(30), batch_size=None))
+    t = build(first)
+    module, trainer = t.module, t.trainer
+    trainer.fit(module, step_batches(30))
     ckpt = tmp_path / "a" / "checkpoints" / "last.ckpt"
     assert ckpt.is_file()
     state = torch.load(ckpt, weights_only=False)
@@ -61,7 +61,8 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     n_anchors = state["state_dict"]["model.field.rows.xyz"].shape[0]
 
     second = tiny_cfg("trainer.max_steps=30", f"ckpt_path={ckpt}", "eval.enabled=false", out=tmp_path / "b")
-    _, _, resumed, bridge, trainer2 = build(second)
+    t = build(second)
+    resumed, bridge, trainer2 = t.module, t.bridge, t.trainer
     seen = {}
 
     def on_start(trainer, pl_module):
@@ -76,10 +77,10 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
             on_start(trainer, pl_module)
 
     trainer2.callbacks.append(Probe())
-    trainer2.fit(resumed, DataLoader(StepDataset(30), batch_size=None), ckpt_path=str(ckpt), weights_only=False)
+    trainer2.fit(resumed, step_batches(30), ckpt_path=str(ckpt), weights_only=False)
     assert seen["step"] == 20 and seen["anchors"] == n_anchors and seen["views"] > 0
     assert trainer2.global_step == 30
-    assert bridge.cursor == state["callbacks"]["SlamBridge"]["cursor"] or bridge.finished
+    assert bridge.source.cursor == state["callbacks"]["SlamBridge"]["run"]["source"]["cursor"] or bridge.run.finished
 
 
 @pytest.mark.slow

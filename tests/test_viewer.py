@@ -189,16 +189,16 @@ def _pixels(png: bytes) -> np.ndarray:
 def test_a_browser_shows_the_map_growing_during_training(tmp_path):
     sync = _browser_or_skip()
     import lightning as L
-    from torch.utils.data import DataLoader
-
-    from segs.train import StepDataset, build
+    
+    from segs.train import build, step_batches
     from segs.viewer.live import LiveViewer
 
     steps, stops = 60, (15, 60)
     overrides = [f"trainer.max_steps={steps}", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false", "viewer=on",
                  f"viewer.first_port={_free_port()}", "viewer.refresh_s=1000"]  # fmt: skip
     cfg = compose(TINY + overrides, output_dir=str(tmp_path / "run"))
-    _, _, module, _, trainer = build(cfg)
+    t = build(cfg)
+    module, trainer = t.module, t.trainer
     viewer = next(c for c in trainer.callbacks if isinstance(c, LiveViewer))
     reached = {s: threading.Event() for s in stops}
     go_on = {s: threading.Event() for s in stops}
@@ -216,7 +216,7 @@ def test_a_browser_shows_the_map_growing_during_training(tmp_path):
                 go_on[step].wait(timeout=120)
 
     trainer.callbacks.append(PauseAt())
-    fit = threading.Thread(target=trainer.fit, args=(module, DataLoader(StepDataset(steps), batch_size=None)), daemon=True)
+    fit = threading.Thread(target=trainer.fit, args=(module, step_batches(steps)), daemon=True)
     shots = {}
     try:
         with sync.sync_playwright() as p:

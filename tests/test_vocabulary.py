@@ -10,12 +10,12 @@ import pytest
 
 from segs.data.synthetic import SyntheticSequence
 from segs.errors import ConfigError, DataError
-from segs.slam.config import FeatureConfig
+from segs.slam.config import group_from_yaml
 from segs.slam.features.extractor import OrbExtractor, to_gray
 from segs.slam.map import vocabulary as V
 from segs.slam.map.vocabulary import KeyFrameDatabase, TrainingConfig, Vocabulary, bow_score
 
-SMALL = TrainingConfig(k=4, depth=2, views=3, features=FeatureConfig(n_features=300))
+SMALL = TrainingConfig(k=4, depth=2, views=3, features=group_from_yaml("features", n_features=300))
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from segs.config import slam_frontend
 from segs.data.frame import Frame
 from segs.slam.geometry import inv_se3
 from segs.slam.map.vocabulary import Vocabulary
-from segs.slam.orb import OrbFrontend
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,7 +48,7 @@ def _blank(seq, index: int) -> Frame:
 def test_relocalization_after_a_jump_to_the_revisit(seq):
     """Map frames 250-289 (RGB-D), lose tracking, then show frames of the revisit 3-9 s later:
     each is relocalized through the database (not the recent keyframe: lost > 30 frames ago)."""
-    fe = OrbFrontend(seq.camera, "rgbd")
+    fe = slam_frontend(seq.camera, "rgbd")
     for i in range(250, 290):
         fe.process(seq[i])
     assert fe.lost_frames() == []

@@ -2,15 +2,19 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import logging
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
 from omegaconf import DictConfig, OmegaConf
 
+from segs import schema
 from segs.errors import ConfigError, UserInputError
+from segs.slam.config import slam_config
 
 log = logging.getLogger("segs")
 
@@ -47,6 +51,15 @@ def model_node(name: str = "segs", total_steps: int = 30000, **overrides) -> Dic
     return OmegaConf.create(OmegaConf.to_container(OmegaConf.merge(root, {"model": model}).model, resolve=True))
 
 
+def slam_frontend(camera, sensor: str, name: str = "orb", **overrides):
+    """The frontend of conf/slam/<name>.yaml for `camera` / `sensor`, with nested overrides
+    merged (tests, notebooks, benches): slam_frontend(cam, "rgbd", local_mapping={"ba_window": 5},
+    threaded=True). The YAML holds every default; the frontend's own builder checks the keys."""
+    node = OmegaConf.merge(OmegaConf.load(CONF_DIR / "slam" / f"{name}.yaml"), overrides)
+    slam_config(node)
+    return instantiate(node)(camera=camera, sensor=sensor)
+
+
 ALIGNMENTS = ("se3", "sim3", "none")
 
 
@@ -55,7 +68,7 @@ def _number(v) -> bool:
 
 
 # (key, predicate, expectation) checked before anything runs; keys absent from a config are skipped
-# how the frontend runs beside mapping (segs.slam.runtime.process; conf/train.yaml slam_mode)
+# how the frontend runs beside mapping (segs.pipeline's frame sources; conf/train.yaml slam_mode)
 SLAM_MODES = ("interleaved", "process", "live")
 
 _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
@@ -80,6 +93,91 @@ _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("slam_rate", lambda v: _number(v) and v > 0, "a number > 0 (1 = real time)"),
     ("callbacks.slam_bridge.min_initial_keyframes", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
 ]
+
+
+@dataclass
+class SensorConfig:
+    """The `sensor` group (conf/sensor/*.yaml)."""
+
+    mode: str
+    ate_align: str
+
+
+@dataclass
+class PathsConfig:
+    """The `paths` group (conf/paths/default.yaml)."""
+
+    root_dir: str
+    data_dir: str
+    log_dir: str
+    output_dir: str | None  # Hydra's run folder (None where a config is composed without one)
+
+
+@dataclass
+class LimitsConfig:
+    """`limits` (conf/train.yaml)."""
+
+    max_rss_mb: float | None
+
+
+TYPED_GROUPS = {"sensor": SensorConfig, "paths": PathsConfig, "limits": LimitsConfig}
+HYDRA_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
+# targets taking **kwargs -> where those go (their keys are checked against both signatures)
+KWARGS_GO_TO = {"lightning.pytorch.loggers.TensorBoardLogger": "torch.utils.tensorboard.SummaryWriter"}
+
+
+def _known_top_level_keys() -> set[str]:
+    """The keys conf/train.yaml writes and the groups of its defaults list."""
+    root = OmegaConf.load(CONF_DIR / "train.yaml")
+    groups = {d if isinstance(d, str) else next(iter(d)) for d in root.defaults} - {"_self_"}
+    return (set(root) - {"defaults"}) | groups
+
+
+def _check_target_keys(node: dict, where: str) -> None:
+    """ConfigError naming the first key of a Hydra `_target_` node that its target does not take
+    (a target taking **kwargs accepts any)."""
+    from hydra.utils import get_object
+
+    target = node.get("_target_")
+    if not isinstance(target, str):
+        return
+    try:
+        params = dict(inspect.signature(get_object(target)).parameters)
+        if target in KWARGS_GO_TO:
+            params.update(inspect.signature(get_object(KWARGS_GO_TO[target])).parameters)
+    except Exception as err:  # noqa: BLE001 - any import or lookup failure means the same to the user
+        raise ConfigError(f"{where}._target_={target!r} cannot be loaded ({type(err).__name__})") from None
+    params = {k: p for k, p in params.items() if p.kind is not p.VAR_KEYWORD or target not in KWARGS_GO_TO}
+    if any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        return
+    unknown = sorted(k for k in node if k not in HYDRA_KEYS and k not in params)
+    if unknown:
+        raise ConfigError(f"{where}.{unknown[0]}: unknown key; known keys of {where}: {', '.join(params)}")
+
+
+def _check_groups(cfg: DictConfig, mapper: bool) -> None:
+    """Unknown keys in every group: at the top, in the typed groups (sensor, paths, limits, slam)
+    and in the `_target_` nodes (data; with the mapper also trainer, callbacks, logger)."""
+    unknown = sorted(set(cfg) - _known_top_level_keys())
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: unknown key at the top of the config (conf/train.yaml)")
+    for key, cls in TYPED_GROUPS.items():
+        if OmegaConf.select(cfg, key, default=None) is not None:
+            schema.build(cls, OmegaConf.to_container(cfg[key], resolve=True), key)
+    if OmegaConf.select(cfg, "slam", default=None) is not None:
+        slam_config(OmegaConf.to_container(cfg.slam, resolve=True))
+    if OmegaConf.select(cfg, "data", default=None) is not None:
+        data = OmegaConf.to_container(cfg.data, resolve=True)
+        data.pop("stress", None)  # segs.data.stress's, checked when it wraps the sequence
+        _check_target_keys(data, "data")
+    if not mapper:
+        return
+    if OmegaConf.select(cfg, "trainer", default=None) is not None:
+        _check_target_keys(OmegaConf.to_container(cfg.trainer, resolve=True), "trainer")
+    for group in ("callbacks", "logger"):
+        for name, node in (OmegaConf.to_container(cfg[group], resolve=True) if cfg.get(group) else {}).items():
+            if node is not None:
+                _check_target_keys(node, f"{group}.{name}")
 
 
 def instantiate(node, *args, **kwargs):
@@ -130,7 +228,9 @@ def make_sequence(data_cfg: DictConfig):
 def validate(cfg: DictConfig, mapper: bool = True) -> None:
     """Raise ConfigError naming the first bad key.
 
-    Checks, before anything runs: every number of the config is finite, the viewer group
+    Checks, before anything runs: every number of the config is finite, no group holds an
+    unknown key (segs.schema.build for the typed groups, the target's signature for the
+    `_target_` nodes: data, trainer, callbacks, logger), the viewer group
     (segs.viewer.config: keys, ranges, viser installed when on), the typed mapper configs
     (model, mapping, raster: unknown / missing keys, kinds, ranges; segs.modules.config) after
     the keys of _CHECKS, raster.far > raster.near, and that raster.backend=cuda can run here.
@@ -141,6 +241,7 @@ def validate(cfg: DictConfig, mapper: bool = True) -> None:
     if renamed is not None:
         raise ConfigError(f"config group camera was renamed sensor: use {renamed}")
     _check_finite(cfg)
+    _check_groups(cfg, mapper)
     for key, ok, expected in _CHECKS:
         value = OmegaConf.select(cfg, key, default="__absent__")
         if isinstance(value, str) and value == "__absent__":
@@ -208,11 +309,16 @@ def user_errors_exit(code: int = 2) -> Iterator[None]:
         raise SystemExit(code) from None
 
 
-def make_frontend(cfg: DictConfig, sequence):
-    """The configured frontend for sequence: built here (slam_mode=interleaved) or, for
-    slam_mode=process | live, a segs.slam.runtime.process.FrontendProcess that builds it in a child
-    process (it is also built here once, so a bad slam config fails before the child starts)."""
+def make_source(cfg: DictConfig, sequence, ahead: int = 0, reader: str = "thread"):
+    """The configured frontend tracking `sequence` as a segs.pipeline frame source: built here and
+    fed in this process (slam_mode=interleaved; ahead / reader: frames read and prepared ahead of
+    tracking, segs.pipeline.readers), or built and run by a child process (slam_mode=process |
+    live: ProcessSource / LiveSource; the frontend is also built here once, so a bad slam config
+    fails before the child starts)."""
     import functools
+
+    from segs.pipeline.process import LiveSource, ProcessSource
+    from segs.pipeline.sources import InterleavedSource
 
     mode = OmegaConf.select(cfg, "slam_mode", default="interleaved")
     extra = {}
@@ -221,8 +327,6 @@ def make_frontend(cfg: DictConfig, sequence):
     factory = functools.partial(instantiate(cfg.slam), camera=sequence.camera, sensor=sequence.sensor, **extra)
     frontend = factory()
     if mode == "interleaved":
-        return frontend
-    from segs.slam.runtime.process import FrontendProcess
-
-    return FrontendProcess(factory, sequence, mode, rate=OmegaConf.select(cfg, "slam_rate", default=1.0),
-                           uses_ground_truth_poses=frontend.uses_ground_truth_poses)
+        return InterleavedSource(frontend, sequence, ahead=ahead, reader=reader)
+    cls = LiveSource if mode == "live" else ProcessSource
+    return cls(factory, sequence, frontend.uses_ground_truth_poses, rate=OmegaConf.select(cfg, "slam_rate", default=1.0))

@@ -3,7 +3,8 @@
 Test views are all tracked frames whose images were not trained on; each is rendered at its
 estimated pose and compared with its image (PSNR, SSIM, LPIPS when weights are configured).
 ATE comes from evo. metrics.json is written last and atomically: a run folder without it is not
-a finished result. The mapper is used only through segs.modules.contract.GaussianMapper.
+a finished result. The mapper is used only through segs.modules.contract.GaussianMapper; the run
+(trajectory, split, keyframes, map points, tracking speed) through its segs.pipeline RunState.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from segs.eval_config import EvalConfig
 from segs.map_points import FILE_NAME as MAP_POINTS
 from segs.modules.contract import GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
+from segs.pipeline.run_state import RunState
 from segs.run_folder import write_json_atomic
 from segs.trajectory import GROUND_TRUTH_POSES, estimated_c2w, frontend_ate, lost_ranges, write_tum
 
@@ -75,14 +77,13 @@ def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: 
     return out
 
 
-def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
+def run_summary(module: GaussianMapper, sequence, run: RunState, timing: dict) -> dict:
     """The numbers of a run that need no rendering: time, tracking, keyframes, model size.
 
     timing: {"steps", "fit_s", "wall_s"} summed over every session of the run (resumes included).
     """
-    frontend = bridge.frontend
-    trajectory = frontend.trajectory()
-    lost = frontend.lost_frames()
+    trajectory = run.trajectory()
+    lost = run.lost_frames()
     counts = module.counts()
     steps = timing.get("steps", 0)
     dropped = int(getattr(sequence, "dropped", 0) or 0)
@@ -94,7 +95,7 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
         "iterations_per_s": steps / timing["fit_s"] if timing.get("fit_s") else None,
         "iteration_ms_median": float(np.median(module.iteration_ms)) if module.iteration_ms else None,
         "sessions": timing.get("sessions", 1),
-        "tracking_fps": bridge.tracking_fps(),
+        "tracking_fps": run.tracking_fps(),
         "frames": len(sequence),
         "frames_dropped": dropped,
         "frames_tracked": len(trajectory),
@@ -102,10 +103,10 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
         "lost_frames": len(lost),
         "lost_ranges": lost_ranges(lost),
         # slam_mode=live: frames skipped because tracking was behind the camera (never tracked)
-        "frames_dropped_live": len(frontend.dropped_frames()) if hasattr(frontend, "dropped_frames") else 0,
-        "keyframes": len(frontend.keyframe_frames()),
+        "frames_dropped_live": len(run.dropped_frames()),
+        "keyframes": len(run.keyframe_frames()),
         "training_views": counts.training_views,
-        "held_out_points": bridge.held_out_points,
+        "held_out_points": run.held_out_points,
         "anchors": counts.anchors,
         "gaussians": counts.gaussians,
         "params": counts.params,
@@ -118,7 +119,7 @@ def run_summary(module: GaussianMapper, sequence, bridge, timing: dict) -> dict:
     return summary
 
 
-def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg: EvalConfig, out: Path, timing: dict, notes: dict | None = None,
+def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConfig, out: Path, timing: dict, notes: dict | None = None,
              watch: Callable[[str], None] | None = None, provenance: dict | None = None) -> dict:  # fmt: skip
     """Compute and write every result file of a run; returns the metrics dict (metrics.json, last).
 
@@ -126,18 +127,17 @@ def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg: EvalConfig, out
     watch: called before each test view (memory guard); provenance: segs.provenance's record,
     completed here with the raster backend that rendered the test views."""
     out.mkdir(parents=True, exist_ok=True)
-    frontend = bridge.frontend
-    trajectory = frontend.trajectory()
-    test = bridge.test_frames()
+    trajectory = run.trajectory()
+    test = run.test_frames()
     images = render_test_views(module, sequence, trajectory, test, eval_cfg.lpips_weights, eval_cfg.save_renders, out,
                                eval_cfg.progress, eval_cfg.active_opacity, watch)  # fmt: skip
     idx, c2w = estimated_c2w(trajectory)
     write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
-    ate_result = frontend_ate(frontend, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.ate_align)
+    ate_result = frontend_ate(run, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.ate_align)
     if eval_cfg.write_ply:
         module.export_ply(out / "point_cloud.ply")
-    bridge.map_points.write(out / MAP_POINTS)
-    summary = run_summary(module, sequence, bridge, timing)
+    run.map_points.write(out / MAP_POINTS)
+    summary = run_summary(module, sequence, run, timing)
     metrics = {
         **images,
         "lpips_note": None if images["lpips"] is not None else "n/a: no AlexNet weights file (eval.lpips_weights)",
@@ -156,14 +156,14 @@ def evaluate(module: GaussianMapper, sequence, bridge, eval_cfg: EvalConfig, out
     return metrics
 
 
-def write_not_evaluated(module: GaussianMapper, sequence, bridge, out: Path, timing: dict, notes: dict | None = None,
+def write_not_evaluated(module: GaussianMapper, sequence, run: RunState, out: Path, timing: dict, notes: dict | None = None,
                         provenance: dict | None = None) -> dict:  # fmt: skip
     """metrics.json of a run trained with eval.enabled=false (status "not_evaluated"): the run's
     numbers without any test-view or trajectory metric."""
     out.mkdir(parents=True, exist_ok=True)
-    bridge.map_points.write(out / MAP_POINTS)
+    run.map_points.write(out / MAP_POINTS)
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
-    metrics = {**none, "test_views": 0, **run_summary(module, sequence, bridge, timing), **(notes or {}), "status": "not_evaluated",
+    metrics = {**none, "test_views": 0, **run_summary(module, sequence, run, timing), **(notes or {}), "status": "not_evaluated",
                "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed",
                "provenance": {**(provenance or {}), "raster_backend": module.raster_backend}}  # fmt: skip
     write_json_atomic(out / "metrics.json", metrics)

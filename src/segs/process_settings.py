@@ -1,8 +1,8 @@
 """Process-wide settings of segs's programs, applied by each entry point before torch loads.
 
 `apply()` is called by the programs, never by an import (docs/decisions/028-process-settings.md):
-`python -m segs.train` and `segs.track`, the child processes (`segs.slam.runtime.process`,
-`segs.slam.backend.ba_process`, the frame reader of `segs.slam.runtime.runner`), the vocabulary
+`python -m segs.train` and `segs.track`, the child processes (`segs.pipeline.process`,
+`segs.slam.backend.ba_process`, the frame reader of `segs.pipeline.readers`), the vocabulary
 trainer, bench/_harness.py and tests/conftest.py. It sets
 
 - `OMP_WAIT_POLICY=PASSIVE` unless the environment sets it: PyTorch's OpenMP threads spin after

@@ -11,10 +11,10 @@ if __name__ == "__main__":  # the program: process settings before torch loads (
 
     process_settings.apply()
 
-import contextlib
 import logging
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -22,43 +22,117 @@ import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
-from torch.utils.data import DataLoader, Dataset
 
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
 from segs.callbacks.checkpoint import DirectCheckpointIO
 from segs.callbacks.interrupt import Interrupted
 from segs.callbacks.run_record import RunRecord, check_resume, fingerprint, read_checkpoint
-from segs.config import instantiate, make_frontend, make_sequence, user_errors_exit, validate
+from segs.config import instantiate, make_sequence, make_source, user_errors_exit, validate
+from segs.data.frame import Sequence
 from segs.errors import DataError, TrackingFailed
 from segs.eval_config import eval_config
 from segs.evaluation import evaluate, write_not_evaluated, write_tracking_failed
 from segs.modules.config import build_model, mapping_config, raster_config
 from segs.modules.gaussian_mapper import GaussianMapperModule
+from segs.pipeline.run_state import RunState
 from segs.provenance import provenance
-from segs.slam.runtime.process import FrontendProcess
 from segs.viewer.config import viewer_config
 
 log = logging.getLogger("segs.train")
 
 
-class StepDataset(Dataset):
-    """One item per mapping step (the step index); views are sampled by the module itself."""
-
-    def __init__(self, steps: int):
-        self.steps = steps
-
-    def __len__(self) -> int:
-        return self.steps
-
-    def __getitem__(self, i: int) -> int:
-        return i
+def step_batches(steps: int) -> range:
+    """What trainer.fit iterates: Lightning's fit loop needs an iterable and runs one training
+    step per item; the module samples its own training view, so the items are the step indices
+    (no Dataset or DataLoader: nothing to load, and no seed drawn from any generator)."""
+    return range(steps)
 
 
-def build(cfg: DictConfig, session_start: float | None = None):
-    """Check the config (and the checkpoint to resume), then instantiate sequence, frontend,
-    module, bridge and trainer. session_start: time.perf_counter() at the start of the run."""
+@dataclass
+class TrainingRun:
+    """One session of a segs.train run: what build() made, and the final checkpoint once written.
+
+    interrupt: the run's one Ctrl-C / SIGTERM handler (segs.callbacks.interrupt), the first of
+    the trainer's callbacks; record: times and fingerprint (RunRecord); guard: the memory guard,
+    if configured; started: time.perf_counter() when the session started.
+    """
+
+    cfg: DictConfig
+    out: Path
+    sequence: Sequence
+    state: RunState
+    module: GaussianMapperModule
+    bridge: SlamBridge
+    trainer: L.Trainer
+    interrupt: GracefulInterrupt
+    record: RunRecord
+    guard: MemoryGuard | None
+    started: float
+    final_checkpoint: str | None = None
+
+    def execute(self) -> dict:
+        """Fit, final checkpoint, the frames not fed yet, evaluation; -> metrics.json's dict."""
+        self.fit()
+        notes = self.save_final()
+        return self.evaluate(notes)
+
+    def fit(self) -> None:
+        """trainer.fit; a tracking failure is recorded in metrics.json, then raised; a signal
+        during fit ends the run with its exit status (after the checkpoint the handler wrote)."""
+        try:
+            # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
+            self.trainer.fit(self.module, step_batches(self.cfg.trainer.max_steps), ckpt_path=self.cfg.ckpt_path,
+                             weights_only=False)  # fmt: skip
+        except TrackingFailed as err:  # the method's result on this input: recorded, then reported
+            write_tracking_failed(self.out, err, len(self.state.trajectory()), time.perf_counter() - self.started,
+                                  self.provenance())  # fmt: skip
+            raise
+        if self.interrupt.exit_code is not None:
+            raise SystemExit(self.interrupt.exit_code)
+
+    def save_final(self) -> dict:
+        """checkpoints/final.ckpt (a signal meanwhile waits for the write); -> metrics notes."""
+        self.module.to(self.trainer.strategy.root_device)  # Lightning hands the module back on the CPU after fit
+        final = self.out / "checkpoints" / "final.ckpt"
+        with self.interrupt.in_phase("defer"):
+            notes = save_final(self.trainer, final)
+        self.final_checkpoint = notes["final_checkpoint"]
+        if self.interrupt.exit_code is not None:
+            print(f"segs: stopped after the final checkpoint; evaluate it with the same command plus  ckpt_path={final}",
+                  file=sys.stderr)  # fmt: skip
+            raise SystemExit(self.interrupt.exit_code)
+        return notes
+
+    def evaluate(self, notes: dict) -> dict:
+        """Track the rest of the sequence, then the test views, ATE and metrics.json (a signal
+        stops at once: no metrics.json)."""
+        guard, trainer, record = self.guard, self.trainer, self.record
+        watch = (lambda where: guard.check(trainer, where, save=False)) if guard is not None else None
+        with self.interrupt.in_phase("now"):
+            self.bridge.complete_sequence()
+            timing = {"steps": trainer.global_step, "fit_s": record.fit_seconds(), "wall_s": record.wall_seconds(),
+                      "sessions": record.sessions}  # fmt: skip
+            evaluation = eval_config(self.cfg.eval)
+            if not evaluation.enabled:
+                metrics = write_not_evaluated(self.module, self.sequence, self.state, self.out, timing, notes, self.provenance())
+                print(f"\nsegs: results in {self.out} (eval.enabled=false: no test view rendered)\n  {metrics['iterations']} "
+                      f"iterations, {metrics['anchors']} anchors; metrics.json"
+                      f"{', checkpoints/final.ckpt' if self.final_checkpoint else ''}")  # fmt: skip
+                return metrics
+            metrics = evaluate(self.module, self.sequence, self.state, evaluation, self.out, timing, notes, watch, self.provenance())
+        _print_summary(self.out, metrics)
+        return metrics
+
+    def provenance(self) -> dict:
+        return provenance(self.cfg, self.sequence.sensor, self.module.raster_backend, str(self.module.device))
+
+
+def build(cfg: DictConfig, session_start: float | None = None) -> TrainingRun:
+    """Check the config (and the checkpoint to resume), then instantiate sequence, run state
+    (frame source and split), module, bridge, the interrupt handler and trainer.
+    session_start: time.perf_counter() at the start of the run (default: now)."""
+    started = time.perf_counter() if session_start is None else session_start
     validate(cfg)
     record = read_checkpoint(cfg.get("ckpt_path"))
     sequence = make_sequence(cfg.data)
@@ -67,11 +141,14 @@ def build(cfg: DictConfig, session_start: float | None = None):
     identity = fingerprint(cfg, sequence)
     if record is not None:
         check_resume(cfg.ckpt_path, record, identity)
-    frontend = make_frontend(cfg, sequence)
+    state = RunState(sequence, make_source(cfg, sequence), holdout_every=eval_config(cfg.eval).holdout_every)
     module = GaussianMapperModule(build_model(cfg.model), mapping_config(cfg.mapping), raster_config(cfg.raster), seed=cfg.seed)
-    bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(sequence=sequence, frontend=frontend)
-    callbacks = [bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
-    callbacks.append(RunRecord(identity, session_start))
+    bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(run=state)
+    # first: it takes the signals back from Lightning when training starts, before the bridge tracks
+    interrupt = GracefulInterrupt(cfg.paths.output_dir)
+    callbacks = [interrupt, bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
+    run_record = RunRecord(identity, started)
+    callbacks.append(run_record)
     viewer = viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True)) if "viewer" in cfg else None
     if viewer is not None:  # viewer=on: the map served to a browser while training (segs.viewer)
         from segs.viewer.live import LiveViewer
@@ -79,12 +156,10 @@ def build(cfg: DictConfig, session_start: float | None = None):
         callbacks.append(LiveViewer(viewer, sequence, align=cfg.eval.ate_align))
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, default_root_dir=cfg.paths.output_dir,
-                                     plugins=[DirectCheckpointIO()])  # fmt: skip
-    return sequence, frontend, module, bridge, trainer
-
-
-def _find(trainer: L.Trainer, kind: type):
-    return next((c for c in trainer.callbacks if isinstance(c, kind)), None)
+                                     plugins=[DirectCheckpointIO()])
+    guard = next((c for c in callbacks if isinstance(c, MemoryGuard)), None)
+    return TrainingRun(cfg, Path(cfg.paths.output_dir), sequence, state, module, bridge, trainer, interrupt, run_record, guard,
+                       started)  # fmt: skip
 
 
 def save_final(trainer: L.Trainer, path: Path) -> dict:
@@ -104,76 +179,24 @@ def run(cfg: DictConfig) -> dict:
 
     Order: fit, final checkpoint (a failed write does not stop the run), tracking of the frames
     not fed yet, evaluation, metrics.json last. Ctrl-C / SIGTERM at any point end with exit
-    130 / 143 and one line (segs.callbacks.interrupt), never with a metrics.json.
+    130 / 143 and one line (segs.callbacks.interrupt, the one handler, installed for the whole
+    run), never with a metrics.json.
     """
-    t_start = time.perf_counter()
+    started = time.perf_counter()
     validate(cfg)  # before seeding: seed itself is checked
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    out = Path(cfg.paths.output_dir)
-    sequence, frontend, module, bridge, trainer = build(cfg, t_start)
-    # the DataLoader draws its base seed from this generator, not from torch's global RNG, which a
-    # resumed run restores from its checkpoint (one draw there made resumed runs diverge)
-    loader = DataLoader(StepDataset(cfg.trainer.max_steps), batch_size=None, shuffle=False,
-                        generator=torch.Generator().manual_seed(cfg.seed))  # fmt: skip
-    stopper = _find(trainer, GracefulInterrupt) or contextlib.nullcontext()
-    saved: dict = {}  # "final": the final checkpoint once this session has written it
+    training = build(cfg, started)
     try:
-        with stopper:
-            return _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper, t_start, saved)
+        with training.interrupt:
+            return training.execute()
     except Interrupted as err:
-        final = saved.get("final")
+        final = training.final_checkpoint
         where = f"the trained map is in {final}; evaluate it with the same command plus  ckpt_path={final}" if final \
             else "nothing was saved since the last checkpoint"  # fmt: skip
         print(f"\nsegs: stopped by {err}; no metrics.json written; {where}", file=sys.stderr)
         raise SystemExit(err.code) from None
     finally:
-        if isinstance(frontend, FrontendProcess):
-            frontend.close()
-
-
-def _run(cfg, out, sequence, frontend, module, bridge, trainer, loader, stopper, t_start, saved: dict) -> dict:
-    record, guard = _find(trainer, RunRecord), _find(trainer, MemoryGuard)
-    phase = getattr(stopper, "in_phase", lambda _: contextlib.nullcontext())
-    try:
-        # our checkpoints hold numpy arrays (frontend map, RNG states): they are the user's own files
-        trainer.fit(module, loader, ckpt_path=cfg.ckpt_path, weights_only=False)
-    except TrackingFailed as err:  # the method's result on this input: recorded, then reported
-        write_tracking_failed(out, err, len(frontend.trajectory()), time.perf_counter() - t_start, _provenance(cfg, sequence, module))
-        raise
-    except SIGTERMException:  # Lightning's own SIGTERM handling stopped the loop (exit code 0 otherwise)
-        if isinstance(stopper, GracefulInterrupt) and stopper.checkpoint is None:
-            stopper.stop(trainer)
-        raise SystemExit(143) from None
-    if getattr(stopper, "exit_code", None) is not None:
-        raise SystemExit(stopper.exit_code)
-    if trainer.interrupted:  # Lightning caught a KeyboardInterrupt itself (no handler installed)
-        raise SystemExit(130)
-    module.to(trainer.strategy.root_device)  # Lightning hands the module back on the CPU after fit
-    final = out / "checkpoints" / "final.ckpt"
-    with phase("defer"):
-        notes = save_final(trainer, final)
-    saved["final"] = notes["final_checkpoint"]
-    if getattr(stopper, "exit_code", None) is not None:
-        print(f"segs: stopped after the final checkpoint; evaluate it with the same command plus  ckpt_path={final}", file=sys.stderr)
-        raise SystemExit(stopper.exit_code)
-    watch = (lambda where: guard.check(trainer, where, save=False)) if guard is not None else None
-    with phase("now"):
-        bridge.complete_sequence()
-        timing = {"steps": trainer.global_step, "fit_s": record.fit_seconds(), "wall_s": record.wall_seconds(), "sessions": record.sessions}
-        made = _provenance(cfg, sequence, module)
-        evaluation = eval_config(cfg.eval)
-        if not evaluation.enabled:
-            metrics = write_not_evaluated(module, sequence, bridge, out, timing, notes, made)
-            print(f"\nsegs: results in {out} (eval.enabled=false: no test view rendered)\n  {metrics['iterations']} iterations, "
-                  f"{metrics['anchors']} anchors; metrics.json{', checkpoints/final.ckpt' if saved['final'] else ''}")  # fmt: skip
-            return metrics
-        metrics = evaluate(module, sequence, bridge, evaluation, out, timing, notes, watch, made)
-    _print_summary(out, metrics)
-    return metrics
-
-
-def _provenance(cfg: DictConfig, sequence, module: GaussianMapperModule) -> dict:
-    return provenance(cfg, sequence.sensor, module.raster_backend, str(module.device))
+        training.state.source.close()
 
 
 def _fmt(v, spec: str) -> str:

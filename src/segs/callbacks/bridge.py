@@ -1,14 +1,15 @@
-"""The one bridge between the SLAM frontend (segs.slam) and the mapper (segs.modules).
+"""The Lightning callback between the SLAM frontend and the mapper (segs.modules).
 
-Before each training step the bridge feeds the frames that became available to the frontend,
-polls its MapUpdate and pushes training views, refreshed poses, new points and loop corrections
-into the mapper through segs.modules.contract.GaussianMapper, the only part of the mapper it
-uses. Neither side imports the other.
+Before each training step the bridge advances the run's frame source (segs.pipeline: frames fed
+here, paced over the training steps, or tracked by a child process at its own pace), routes the
+MapUpdate through the RunState (split, keyframe registry, map points) and pushes training views,
+refreshed poses, new points and loop corrections into the mapper through
+segs.modules.contract.GaussianMapper, the only part of the mapper it uses. Neither side imports
+the other.
 """
 from __future__ import annotations
 
 import logging
-import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -18,12 +19,13 @@ import torch
 from tqdm import tqdm
 
 from segs.callbacks.memory import MemoryGuard
-from segs.data.frame import Frame, Sequence
+from segs.data.frame import Frame
 from segs.errors import TrackingFailed
 from segs.map_points import MapPointLog
 from segs.modules.contract import GaussianMapper, TrainingView, to_uint8
-from segs.slam.base import Frontend, MapUpdate
-from segs.slam.runtime.process import FrontendProcess
+from segs.pipeline.legacy import bridge_state
+from segs.pipeline.run_state import RunState
+from segs.slam.base import STATE_FORMAT, MapUpdate
 
 log = logging.getLogger(__name__)
 
@@ -45,40 +47,33 @@ class _ViewData:
 class SlamBridge(L.Callback):
     """Plays the SLAM thread beside training.
 
-    feed_until: fraction of trainer.max_steps by which every frame has been fed to the frontend
-        (the frames after the initial keyframes are spread evenly over those steps), as if the
-        camera streamed in real time beside training; frames_per_step, when set, replaces it.
-    min_initial_keyframes: mapping starts when the frontend has made this many keyframes.
-    holdout_every: frames with index % n == 0 never become training views, and the map points
-        their keyframes create never reach the mapper (counted in held_out_points); 0 = off.
-
-    With a FrontendProcess (slam_mode=process | live) the frontend reads and tracks the frames in
-    its own process, beside training: the bridge only polls its MapUpdates before each step
-    (feed_until / frames_per_step do not apply), and waits for it at the end of training.
+    run: the RunState (sequence, frame source, split). feed_until: fraction of trainer.max_steps
+    by which every frame has been fed to a paced (interleaved) frontend (the frames after the
+    initial keyframes are spread evenly over those steps), as if the camera streamed in real time
+    beside training; frames_per_step, when set, replaces it. A frontend in its own process
+    (slam_mode=process | live) tracks at its own pace: the bridge only takes its MapUpdates
+    before each step and waits for it at the end of training. min_initial_keyframes: mapping
+    starts when the frontend has made this many keyframes. cache_frames: the latest fed frames
+    kept for the training views of their keyframes (older ones are read again).
     """
 
-    def __init__(self, sequence: Sequence, frontend: Frontend, feed_until: float = 0.2,
-                 frames_per_step: float | None = None, min_initial_keyframes: int = 10,
-                 holdout_every: int = 0, progress: bool = True, cache_frames: int = 64):  # fmt: skip
-        self.sequence, self.frontend = sequence, frontend
+    def __init__(self, run: RunState, feed_until: float, frames_per_step: float | None, min_initial_keyframes: int,
+                 progress: bool, cache_frames: int):  # fmt: skip
+        self.run, self.source, self.sequence = run, run.source, run.sequence
         self.feed_until, self.frames_per_step = feed_until, frames_per_step
-        self.min_initial_keyframes = min_initial_keyframes
-        self.holdout_every, self.progress = holdout_every, progress
-        self.cursor = 0  # next frame index to feed
-        self.credit = 0.0
-        self.finished = False
-        self.trained_frames: dict[int, int] = {}  # kf_id -> frame index of views the module trains on
-        self.held_out_keyframes: list[int] = []
+        self.min_initial_keyframes, self.progress = min_initial_keyframes, progress
+        self.credit = 0.0  # frames owed to a paced frontend
         self._cache: OrderedDict[int, _ViewData] = OrderedDict()  # the latest fed frames, by index
         self._cache_size = cache_frames
         self._keep_depth = True  # the mapper's uses_depth, read when training starts
         self._restored = False
-        self.process_seconds = 0.0
-        self.processed = 0
-        self.held_out_points = 0  # SLAM points created by held-out keyframes, never given to the mapper
         self._watch = None  # memory check called while tracking: where -> None (raises LimitError)
-        self.map_points = MapPointLog()  # every SLAM map point handed over (map_points.ply, the viewer)
-        self.in_process = isinstance(frontend, FrontendProcess)
+        self.source.on_frame = self._fed
+
+    @property
+    def map_points(self) -> MapPointLog:
+        """Every SLAM map point handed over (map_points.ply, the viewer)."""
+        return self.run.map_points
 
     # -- Lightning hooks ------------------------------------------------------------------------
     def on_train_start(self, trainer, pl_module: GaussianMapper) -> None:
@@ -88,41 +83,26 @@ class SlamBridge(L.Callback):
             self._watch = lambda where: guard.check(trainer, where, save=False)
         if self._restored:
             return
-        if self.in_process:
-            self._start_process(pl_module)
-            return
+        source = self.source
         bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
         # also wait for the first map points: the ORB frontend hands them over once they have
         # survived culling over a few keyframes
-        while self.cursor < len(self.sequence) and (
-            len(self.frontend.keyframe_frames()) < self.min_initial_keyframes or self._empty(pl_module.counts())
+        while not source.exhausted() and (
+            len(source.keyframe_frames()) < self.min_initial_keyframes or self._empty(pl_module.counts())
         ):
-            self._feed_one()
-            self._push(self.frontend.poll(), pl_module)
-            bar.update(1)
+            self._push(source.track(1, timeout=0.1), pl_module)
+            bar.update(source.cursor - bar.n)
         bar.close()
-        if self.cursor >= len(self.sequence):
-            self._push(self._finish(), pl_module)
-        if self.frames_per_step is None:
+        if source.exhausted():
+            self._push(self.run.finish(), pl_module)
+        if source.paced and self.frames_per_step is None:
             steps = max(self.feed_until * (trainer.max_steps or 1), 1.0)
-            self.frames_per_step = (len(self.sequence) - self.cursor) / steps
-        self._check_mappable(pl_module)
-
-    def _start_process(self, pl_module: GaussianMapper) -> None:
-        """Start the frontend process and wait for the initial keyframes and points."""
-        fe: FrontendProcess = self.frontend
-        bar = tqdm(total=len(self.sequence), desc="tracking until mapping starts", disable=not self.progress, leave=False)
-        while not fe.done() and (len(fe.keyframe_frames()) < self.min_initial_keyframes or self._empty(pl_module.counts())):
-            self._push(fe.poll(timeout=0.1), pl_module)
-            bar.update(fe.cursor - bar.n)
-        bar.close()
-        if fe.done():
-            self._push(self._finish(), pl_module)
+            self.frames_per_step = source.remaining() / steps
         self._check_mappable(pl_module)
 
     def _check_mappable(self, pl_module: GaussianMapper) -> None:
         """Raise TrackingFailed when the frames so far gave nothing to train on."""
-        name, lost = getattr(self.sequence, "name", "the sequence"), len(self.frontend.lost_frames())
+        name, lost = getattr(self.sequence, "name", "the sequence"), len(self.run.lost_frames())
         counts = pl_module.counts()
         if counts.training_views == 0:
             reason = f"no training keyframe in the {len(self.sequence)} frames of {name} ({lost} frames could not be tracked)"
@@ -138,64 +118,40 @@ class SlamBridge(L.Callback):
         return counts.training_views == 0 or counts.gaussians == 0
 
     def on_train_batch_start(self, trainer, pl_module: GaussianMapper, batch, batch_idx) -> None:
-        if self.in_process:
-            update = self.frontend.poll()
-            self.cursor = self.frontend.cursor
-            if self.frontend.done() and not self.finished:
-                update = update.merge(self._finish())
-            self._push(update, pl_module)
-            return
-        self.credit += self.frames_per_step
-        update = MapUpdate()
-        while self.credit >= 1.0 and self.cursor < len(self.sequence):
-            self._feed_one()
-            self.credit -= 1.0
-        if self.cursor >= len(self.sequence) and not self.finished:
-            update = update.merge(self.frontend.poll()).merge(self._finish())
-        else:
-            update = update.merge(self.frontend.poll())
+        frames = 0
+        if self.source.paced:  # the frames this step owes the camera
+            self.credit += self.frames_per_step
+            while self.credit >= 1.0 and frames < self.source.remaining():
+                frames += 1
+                self.credit -= 1.0
+        update = self.source.track(frames)
+        if self.source.exhausted() and not self.run.finished:
+            update = update.merge(self.run.finish())
         self._push(update, pl_module)
 
     # -- feeding --------------------------------------------------------------------------------
-    def _feed_one(self) -> None:
-        frame = self.sequence[self.cursor]
+    def _fed(self, frame: Frame, result) -> None:
+        """After each frame tracked in this process: kept (compact) for its keyframe's view; memory check."""
         self._cache[frame.index] = self._view_data(frame)
         while len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
-        t0 = time.perf_counter()
-        self.frontend.process(frame)
-        self.process_seconds += time.perf_counter() - t0
-        self.processed += 1
-        self.cursor += 1
-        if self._watch is not None and self.cursor % WATCH_EVERY_FRAMES == 0:
+        if self._watch is not None and self.source.cursor % WATCH_EVERY_FRAMES == 0:
             self._watch(f"while tracking frame {frame.index}")
 
-    def _finish(self) -> MapUpdate:
-        self.finished = True
-        update = self.frontend.finish()
-        # after SLAM ends every keyframe pose is replaced by the final optimised trajectory
-        traj = self.frontend.trajectory()
-        for kf_id, idx in self.frontend.keyframe_frames().items():
-            if idx in traj:
-                update.poses.setdefault(kf_id, traj[idx])
-        return update
-
     def complete_sequence(self) -> None:
-        """Track the frames not fed yet (training stopped early) so every frame gets a pose."""
-        if self.finished:
+        """Track the frames not fed yet (training stopped early) so every frame gets a pose; their
+        updates are superseded by the final poses (the mapper is not trained any more)."""
+        if self.run.finished:
             return
-        bar = tqdm(total=len(self.sequence) - self.cursor, desc="tracking the rest", disable=not self.progress, leave=False)
-        if self.in_process:  # its updates are superseded by the final poses, as below
-            while not self.frontend.done():
-                self.map_points.add(self.frontend.poll(timeout=0.1))
-                bar.update(self.frontend.cursor - self.cursor)
-                self.cursor = self.frontend.cursor
-        while self.cursor < len(self.sequence):
-            self._feed_one()
-            bar.update(1)
+        source = self.source
+        bar = tqdm(total=source.remaining(), desc="tracking the rest", disable=not self.progress, leave=False)
+        start = source.cursor
+        while not source.exhausted():
+            self.map_points.add(source.track(source.remaining(), timeout=0.1))
+            bar.update(source.cursor - start - bar.n)
         bar.close()
-        self.map_points.add(self.frontend.poll())
-        self.map_points.add(self._finish())
+        self.map_points.add(source.track(0))
+        self.map_points.add(self.run.finish())
 
     def _view_data(self, frame: Frame) -> _ViewData:
         depth = torch.from_numpy(frame.depth.astype(np.float32)) if frame.depth is not None and self._keep_depth else None
@@ -205,97 +161,39 @@ class SlamBridge(L.Callback):
         return self._cache[index] if index in self._cache else self._view_data(self.sequence[index])
 
     def _push(self, update: MapUpdate, module: GaussianMapper) -> None:
-        """Hand one MapUpdate to the mapper; every pose is converted once (float32 copies) and a
-        new view's pose is registered once, with the view."""
-        if update.is_empty():
+        """Hand one MapUpdate to the mapper, routed by the RunState; every pose is converted once
+        (float32 copies) and a new view's pose is registered once, with the view."""
+        routed = self.run.route(update)
+        if routed is None:
             return
-        self.map_points.add(update)
-        kf_frames = self.frontend.keyframe_frames()
-        poses = {int(k): torch.tensor(v, dtype=torch.float32) for k, v in update.poses.items()}
-        new = []
-        for kf_id in update.new_keyframes:
-            idx = kf_frames.get(kf_id)
-            if idx is None or kf_id not in poses:
-                continue
-            if self.holdout_every and idx % self.holdout_every == 0:
-                self.held_out_keyframes.append(kf_id)
-                continue
-            new.append(self._training_view(kf_id, self._frame_data(idx), poses.pop(kf_id)))
-            self.trained_frames[kf_id] = idx
+        f32 = lambda v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
+        poses = {int(k): f32(v) for k, v in routed.poses.items()}
+        new = [self._training_view(kf_id, self._frame_data(idx), f32(w2c)) for kf_id, idx, w2c in routed.views]
         if new:
             module.add_keyframes(new)
         if poses:
             module.update_poses(poses)
-        if update.corrections:
-            module.correct_map({int(k): torch.tensor(v, dtype=torch.float32) for k, v in update.corrections.items()})
-        keep = self._mappable_points(update.point_kf, kf_frames)
-        if keep.any():
+        if routed.corrections:
+            module.correct_map({int(k): f32(v) for k, v in routed.corrections.items()})
+        if len(routed.points):
             module.add_points(
-                torch.as_tensor(update.points[keep], dtype=torch.float32),
-                torch.as_tensor(update.colors[keep], dtype=torch.float32),
-                torch.as_tensor(update.point_kf[keep], dtype=torch.int64),
+                torch.as_tensor(routed.points, dtype=torch.float32),
+                torch.as_tensor(routed.colors, dtype=torch.float32),
+                torch.as_tensor(routed.point_kf, dtype=torch.int64),
             )
-
-    def _mappable_points(self, point_kf: np.ndarray, kf_frames: dict[int, int]) -> np.ndarray:
-        """[M] bool: points not created by a held-out keyframe (their depth / colour come from a
-        test frame, which the map must not see); the others are counted in held_out_points."""
-        held = set(self.held_out_keyframes)
-        if self.holdout_every:
-            held |= {k for k, i in kf_frames.items() if i % self.holdout_every == 0}
-        keep = ~np.isin(np.asarray(point_kf, dtype=np.int64), np.fromiter(held, np.int64, len(held)))
-        self.held_out_points += int((~keep).sum())
-        return keep
 
     @staticmethod
     def _training_view(kf_id: int, data: _ViewData, w2c: torch.Tensor) -> TrainingView:
         return TrainingView(kf_id=kf_id, frame_index=data.index, timestamp=data.timestamp, image=data.image, w2c=w2c,
                             camera=data.camera, depth=data.depth)  # fmt: skip
 
-    def write_partial_trajectory(self, path) -> None:
-        """The estimated trajectory so far (TUM format), e.g. when training is interrupted."""
-        from segs.trajectory import estimated_c2w, write_tum
-
-        idx, c2w = estimated_c2w(self.frontend.trajectory())
-        write_tum(path, self.sequence.timestamps[idx], c2w)
-
-    def tracking_fps(self) -> float | None:
-        """Frames per second of frontend.process (tracking and, single-threaded, local mapping)."""
-        if self.in_process:  # the child's own time in process()
-            fe = self.frontend
-            return fe.frames_done / fe.process_seconds if fe.process_seconds > 0 else None
-        return self.processed / self.process_seconds if self.process_seconds > 0 else None
-
-    # -- results --------------------------------------------------------------------------------
-    def test_frames(self) -> list[int]:
-        """Tracked frames whose images were never trained on (the paper's test views)."""
-        trained = set(self.trained_frames.values())
-        return sorted(i for i in self.frontend.trajectory() if i not in trained)
-
     # -- checkpoints ----------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {
-            "cursor": self.cursor,
-            "credit": self.credit,
-            "frames_per_step": self.frames_per_step,
-            "finished": self.finished,
-            "trained_frames": dict(self.trained_frames),
-            "held_out_keyframes": list(self.held_out_keyframes),
-            "held_out_points": self.held_out_points,
-            "process_seconds": self.process_seconds,
-            "processed": self.processed,
-            "frontend": self.frontend.state_dict(),
-            "map_points": self.map_points.state_dict(),
-        }
+        return {"format": STATE_FORMAT, "run": self.run.state_dict(), "credit": self.credit,
+                "frames_per_step": self.frames_per_step}  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
-        self.cursor, self.credit, self.finished = state["cursor"], state["credit"], state["finished"]
-        self.frames_per_step = state["frames_per_step"]
-        self.trained_frames = {int(k): int(v) for k, v in state["trained_frames"].items()}
-        self.held_out_keyframes = list(state["held_out_keyframes"])
-        self.held_out_points = int(state.get("held_out_points", 0))
-        # tracking speed over every session (checkpoints older than this field: this session only)
-        self.process_seconds, self.processed = float(state.get("process_seconds", 0.0)), int(state.get("processed", 0))
-        self.frontend.load_state_dict(state["frontend"])
-        if "map_points" in state:  # checkpoints older than map_points.ply: the points of this session only
-            self.map_points.load_state_dict(state["map_points"])
+        state = bridge_state(state)
+        self.run.load_state_dict(state["run"])
+        self.credit, self.frames_per_step = float(state["credit"]), state["frames_per_step"]
         self._restored = True

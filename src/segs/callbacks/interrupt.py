@@ -1,8 +1,11 @@
 """Ctrl-C / SIGTERM: stop cleanly, keep the work done so far, never a traceback.
 
-segs.train installs the handlers for the whole run (`with interrupt:`); used as a plain Lightning
-callback they are installed for the duration of fit. What a first signal does depends on the
-phase the run is in:
+This is the one place that handles them: segs.train makes it the first callback of every trainer
+and installs the handlers for the whole run (`with interrupt:`; used as a plain Lightning callback
+they are installed for the duration of fit). Lightning registers a SIGTERM handler of its own when
+fit starts (it would stop the loop with SIGTERMException, exit status 0); `on_train_start` takes
+both signals back, before the bridge tracks the first frames. What a first signal does depends
+on the phase the run is in:
 
 - "step" (training): the step in progress finishes, then checkpoints/last.ckpt (atomically:
   model, optimizer, keyframes, SLAM map and trajectory, step, RNG states),
@@ -26,6 +29,7 @@ from typing import Iterator
 
 import lightning as L
 
+from segs.callbacks.bridge import SlamBridge
 from segs.callbacks.checkpoint import save_atomic
 from segs.map_points import FILE_NAME as MAP_POINTS
 
@@ -108,6 +112,13 @@ class GracefulInterrupt(L.Callback):
     def on_fit_start(self, trainer, pl_module) -> None:
         self.install("fit")
 
+    def on_train_start(self, trainer, pl_module) -> None:
+        """Lightning has put its SIGTERM handler in front of this one (after on_fit_start, and
+        restores this one when fit ends): take both signals back for the training loop."""
+        if self._owner is not None:
+            for sig in EXIT_CODES:
+                signal.signal(sig, self._handler)
+
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self.received is None or trainer.should_stop:
             return
@@ -117,10 +128,10 @@ class GracefulInterrupt(L.Callback):
         """Checkpoint, partial trajectory, resume hint; then ask the trainer to stop."""
         out = Path(self.dirpath or trainer.default_root_dir)
         self.checkpoint = save_atomic(trainer, out / "checkpoints" / "last.ckpt")
-        bridge = next((c for c in trainer.callbacks if hasattr(c, "write_partial_trajectory")), None)
+        bridge = next((c for c in trainer.callbacks if isinstance(c, SlamBridge)), None)
         if bridge is not None:
-            bridge.write_partial_trajectory(out / "trajectory_partial.txt")
-            bridge.map_points.write(out / MAP_POINTS)
+            bridge.run.write_partial_trajectory(out / "trajectory_partial.txt")
+            bridge.run.map_points.write(out / MAP_POINTS)
         print(
             f"segs: interrupted at step {trainer.global_step}; checkpoint {self.checkpoint}\n"
             f"segs: resume with the same command plus  ckpt_path={self.checkpoint}",

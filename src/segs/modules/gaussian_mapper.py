@@ -199,6 +199,7 @@ class GaussianMapperModule(L.LightningModule):
         checkpoint["segs"] = {
             "store": self.views.state_dict(),
             "scene_extent": self.model.scene_extent,
+            "model": self.model.checkpoint_state(),  # e.g. SEGS's points waiting for min_new_points
             "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
         }
 
@@ -212,6 +213,7 @@ class GaussianMapperModule(L.LightningModule):
         if "store" in extra:
             self.views.load_state_dict(extra["store"])
         self.model.scene_extent = extra.get("scene_extent", self.model.scene_extent)
+        self.model.load_checkpoint_state(extra.get("model", {}))
         if "rng" in extra:
             torch.set_rng_state(extra["rng"]["torch"])
             np.random.set_state(extra["rng"]["numpy"])

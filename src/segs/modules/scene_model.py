@@ -103,6 +103,13 @@ class SceneModel(nn.Module, abc.ABC):
     def register_views(self, views: dict[int, torch.Tensor]) -> None:
         """Training keyframes and their current w2c [4,4] (for per-view embeddings); default: unused."""
 
+    def checkpoint_state(self) -> dict[str, torch.Tensor]:
+        """What a resumed run needs beside the parameters' state_dict (tensors); default: nothing."""
+        return {}
+
+    def load_checkpoint_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore checkpoint_state() (an empty dict: a checkpoint written before it existed)."""
+
     @abc.abstractmethod
     def param_groups(self) -> list[dict]:
         """Optimizer groups [{"name", "params", "lr"}] (initial learning rates)."""

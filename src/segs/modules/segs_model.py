@@ -86,6 +86,16 @@ class SegsModel(SceneModel):
         feats = pts.new_zeros(m, self.field.feature_dim)
         return self.field.add(centres, feats, initial_log_scales(centres, self.field.xyz), new_tags, optimizer)
 
+    def checkpoint_state(self) -> dict[str, torch.Tensor]:
+        """The SLAM points waiting for min_new_points (xyz [P,3], creating kf ids [P])."""
+        if not self._pending:
+            return {}
+        return {"pending_xyz": torch.cat([p for p, _ in self._pending]), "pending_kf": torch.cat([t for _, t in self._pending])}
+
+    def load_checkpoint_state(self, state: dict[str, torch.Tensor]) -> None:
+        xyz = state.get("pending_xyz")
+        self._pending = [] if xyz is None else [(xyz.to(self.field.xyz), state["pending_kf"].to(torch.int64))]
+
     def correct_map(self, transforms, optimizer) -> int:
         """Move the anchors created from each corrected keyframe's points (positions, scales, offsets)."""
         moved = 0

@@ -2,5 +2,5 @@
 ground-truth `known_poses.KnownPosesFrontend`). The ORB frontend's stages, in the order a frame
 meets them: features/ (per frame, ahead of tracking), tracking/ (per frame), backend/ (per
 keyframe: local mapping, loop closing); shared by them: map/, estimation/ (matching, optimisation),
-native/ (C++ kernels) and the modules here (config, sensor, geometry, state, outbox); runtime/
-holds the frame loops around any Frontend."""
+native/ (C++ kernels) and the modules here (config, sensor, geometry, state, outbox). The frame
+loops around any Frontend are segs.pipeline's."""

@@ -12,6 +12,12 @@ import numpy as np
 
 from segs.data.frame import Frame
 
+# the one version of segs's checkpoint state (the bridge's run state, the frame source, the
+# frontends): plain arrays, numbers and containers, no pickled class instance. Earlier states
+# ("segs.orb.v1", "segs.orb.v2", "segs.process.v1", the bridge's before v3) are converted when
+# loaded (segs.slam.orb_state, segs.pipeline.legacy).
+STATE_FORMAT = "segs.state.v3"
+
 
 @dataclass
 class FrameResult:
@@ -53,6 +59,18 @@ class MapUpdate:
     def is_empty(self) -> bool:
         return not (self.new_keyframes or self.poses or len(self.points) or self.corrections)
 
+    def state_dict(self) -> dict:
+        """The update as arrays (checkpoints): dict orders kept."""
+        return {"new_keyframes": np.array(self.new_keyframes, np.int64), "poses": _pose_dict(self.poses),
+                "points": self.points, "colors": self.colors, "point_kf": self.point_kf,
+                "corrections": _pose_dict(self.corrections)}  # fmt: skip
+
+    @classmethod
+    def from_state(cls, state: dict) -> "MapUpdate":
+        return cls(new_keyframes=state["new_keyframes"].tolist(), poses=_pose_dict_from(state["poses"]),
+                   points=state["points"], colors=state["colors"], point_kf=state["point_kf"],
+                   corrections=_pose_dict_from(state["corrections"]))  # fmt: skip
+
     def merge(self, other: "MapUpdate") -> "MapUpdate":
         """Return self followed by other (later poses and corrections win / compose)."""
         corrections = dict(self.corrections)
@@ -66,6 +84,15 @@ class MapUpdate:
             point_kf=np.concatenate([self.point_kf, other.point_kf]),
             corrections=corrections,
         )
+
+
+def _pose_dict(poses: dict[int, np.ndarray]) -> dict:
+    """kf_id -> [4,4] as {"kf_id": [K], "T": [K,4,4]} in dict order."""
+    return {"kf_id": np.array(list(poses), np.int64), "T": np.array(list(poses.values()), np.float64).reshape(-1, 4, 4)}
+
+
+def _pose_dict_from(state: dict) -> dict[int, np.ndarray]:
+    return {k: T.copy() for k, T in zip(state["kf_id"].tolist(), state["T"])}
 
 
 class Frontend(abc.ABC):
@@ -114,7 +141,8 @@ class Frontend(abc.ABC):
         """kf_id -> frame index of every keyframe still in the map."""
 
     def state_dict(self) -> dict:
-        """Serializable state for checkpoints (override to support resume)."""
+        """Checkpoint state (override to support resume): {"format": STATE_FORMAT, "kind": ...}
+        with plain numbers, strings, arrays and containers only."""
         raise NotImplementedError(f"{type(self).__name__} does not support checkpointing")
 
     def load_state_dict(self, state: dict) -> None:

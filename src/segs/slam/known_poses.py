@@ -13,7 +13,7 @@ import numpy as np
 
 from segs.data.frame import Camera, Frame
 from segs.errors import ConfigError
-from segs.slam.base import FrameResult, Frontend, MapUpdate
+from segs.slam.base import STATE_FORMAT, FrameResult, Frontend, MapUpdate
 
 
 def _gray(rgb: np.ndarray) -> np.ndarray:
@@ -29,16 +29,16 @@ class KnownPosesFrontend(Frontend):
     triangulation checks; stereo_num_disparities: SGBM search range (multiple of 16);
     max_hamming: largest descriptor distance of a match with the previous keyframe;
     point_source: "orb" (keypoints, like an indirect SLAM's map) or "grid" (every grid_stride-th
-    pixel with depth, RGB-D / stereo only: dense structure for texture-poor scenes).
+    pixel with depth, RGB-D / stereo only: dense structure for texture-poor scenes). Every value
+    is conf/slam/known_poses.yaml's (segs.config.slam_frontend(camera, sensor, "known_poses")).
     """
 
     uses_ground_truth_poses = True
 
-    def __init__(self, camera: Camera, sensor: str, keyframe_every: int = 10, kf_translation: float = 0.1,
-                 kf_rotation_deg: float = 10.0, n_features: int = 1000, fast_threshold: int = 7,
-                 depth_range: tuple[float, float] = (0.1, 8.0), max_reproj_px: float = 2.0,
-                 min_parallax_deg: float = 1.0, stereo_num_disparities: int = 64, max_hamming: int = 50,
-                 point_source: str = "orb", grid_stride: int = 8):  # fmt: skip
+    def __init__(self, camera: Camera, sensor: str, *, keyframe_every: int, kf_translation: float, kf_rotation_deg: float,
+                 n_features: int, fast_threshold: int, depth_range: tuple[float, float], max_reproj_px: float,
+                 min_parallax_deg: float, stereo_num_disparities: int, max_hamming: int, point_source: str,
+                 grid_stride: int):  # fmt: skip
         if keyframe_every < 1:
             raise ConfigError(f"slam.keyframe_every={keyframe_every} is out of range: expected >= 1")
         if n_features < 1:
@@ -105,14 +105,30 @@ class KnownPosesFrontend(Frontend):
         return dict(self._kf_frames)
 
     def state_dict(self) -> dict:
-        last = None if self._last_kf is None else {k: v for k, v in self._last_kf.items()}
-        return {"poses": self._poses, "lost": self._lost, "kf_frames": self._kf_frames, "last_kf": last}
+        """Poses, lost frames, keyframes, the last keyframe's features and the update not polled
+        yet, as arrays (format segs.state.v3; states before it had no format and no pending)."""
+        last = None if self._last_kf is None else {k: np.array(v) if k != "frame" else int(v) for k, v in self._last_kf.items()}
+        return {"format": STATE_FORMAT, "kind": "known_poses", "frame": np.array(list(self._poses), np.int64),
+                "w2c": np.array(list(self._poses.values()), np.float64).reshape(-1, 4, 4),
+                "lost": np.array(self._lost, np.int64), "kf_id": np.array(list(self._kf_frames), np.int64),
+                "kf_frame": np.array(list(self._kf_frames.values()), np.int64), "last_kf": last,
+                "pending": self._pending.state_dict()}  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
-        self._poses = {int(k): np.asarray(v) for k, v in state["poses"].items()}
-        self._lost = list(state["lost"])
-        self._kf_frames = {int(k): int(v) for k, v in state["kf_frames"].items()}
-        self._last_kf = state["last_kf"]
+        if "format" not in state and "poses" in state:  # before segs.state.v3: dicts of arrays
+            state = {"frame": np.array(list(state["poses"]), np.int64), "w2c": np.array(list(state["poses"].values())).reshape(-1, 4, 4),
+                     "lost": np.array(state["lost"], np.int64), "kf_id": np.array(list(state["kf_frames"]), np.int64),
+                     "kf_frame": np.array(list(state["kf_frames"].values()), np.int64), "last_kf": state["last_kf"],
+                     "pending": MapUpdate().state_dict(), "format": STATE_FORMAT, "kind": "known_poses"}  # fmt: skip
+        if state.get("format") != STATE_FORMAT or state.get("kind") != "known_poses":
+            raise ConfigError(f"slam: the checkpoint's frontend state is {state.get('kind') or state.get('format')!r}, not a "
+                              "known-poses state; resume with the frontend that wrote it")  # fmt: skip
+        self._poses = {k: w.copy() for k, w in zip(state["frame"].tolist(), state["w2c"])}
+        self._lost = state["lost"].tolist()
+        self._kf_frames = dict(zip(state["kf_id"].tolist(), state["kf_frame"].tolist()))
+        last = state["last_kf"]
+        self._last_kf = None if last is None else {k: (np.array(v) if k != "frame" else int(v)) for k, v in last.items()}
+        self._pending = MapUpdate.from_state(state["pending"])
 
     # -- keyframe decision ----------------------------------------------------------------------
     def _is_keyframe(self, index: int, w2c: np.ndarray) -> bool:

@@ -18,12 +18,8 @@ with the latest keyframe poses by `trajectory()`.
 """
 from __future__ import annotations
 
-import io
 import logging
-import pickle
-import threading
 import time
-from types import SimpleNamespace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -31,11 +27,11 @@ import numpy as np
 from segs.data.frame import Camera, Frame
 from segs.errors import ConfigError
 from segs.slam import config as C
+from segs.slam import orb_state
 from segs.slam.backend.ba_process import BundleAdjusterProcess
 from segs.slam.base import FrameResult, Frontend, MapUpdate
 from segs.slam.features.extractor import OrbExtractor
 from segs.slam.features.frame import FrameBuilder, SlamFrame
-from segs.slam.tracking.frame_poses import FramePoses
 from segs.slam.backend.keyframe_queue import KeyFrameQueue
 from segs.slam.backend.local_mapping import LocalMapper
 from segs.slam.backend.loop_closing import LoopCloser
@@ -54,27 +50,26 @@ class OrbFrontend(Frontend):
     """ORB-SLAM style frontend for "mono", "stereo" and "rgbd" sequences.
 
     camera: intrinsics of the (undistorted / rectified) images; sensor: "mono" | "stereo" | "rgbd";
-    features, tracking, init, mapping, loop, matching: parameter groups (see segs.slam.config and
-    conf/slam/orb.yaml); threaded: mapping in a background thread; seed: RANSAC seeds;
-    final_global_ba: a global bundle adjustment in finish(); verbose: log events.
+    features, tracking, init, local_mapping, loop, matching: parameter groups (mappings with every
+    key of conf/slam/orb.yaml's, typed by segs.slam.config.OrbConfig); threaded: mapping in a
+    background thread; seed: RANSAC seeds; final_global_ba: a global bundle adjustment in finish();
+    verbose: log events. segs.config.slam_frontend builds one from the YAML.
     """
 
-    def __init__(self, camera: Camera, sensor: str, features: Mapping | None = None,
-                 tracking: Mapping | None = None, init: Mapping | None = None,
-                 mapping: Mapping | None = None, loop: Mapping | None = None, matching: Mapping | None = None,
-                 threaded: bool = False,
-                 seed: int = 0, final_global_ba: bool = False, verbose: bool = False):
+    def __init__(self, camera: Camera, sensor: str, *, features: Mapping, tracking: Mapping, init: Mapping,
+                 local_mapping: Mapping, loop: Mapping, matching: Mapping, threaded: bool, seed: int,
+                 final_global_ba: bool, verbose: bool):  # fmt: skip
         if sensor not in ("mono", "stereo", "rgbd"):
             raise ConfigError(f"slam: unknown sensor {sensor!r} (mono, stereo, rgbd)")
         if sensor == "stereo" and not camera.baseline:
             raise ConfigError("slam: stereo needs camera.baseline (metres) of the rectified pair")
 
-        self.cfg = SimpleNamespace()
-        for name, group in (("features", features), ("tracking", tracking), ("init", init),
-                            ("mapping", mapping), ("loop", loop), ("matching", matching)):
-            setattr(self.cfg, name, C.build(C.GROUPS[name], group, name))
-        self.camera, self.sensor, self.seed = camera, sensor, int(seed)
-        self.threaded, self.final_global_ba, self.verbose = bool(threaded), bool(final_global_ba), bool(verbose)
+        self.cfg: C.OrbConfig = C.build_frontend_config(C.OrbConfig, {
+            "threaded": threaded, "seed": seed, "final_global_ba": final_global_ba, "verbose": verbose,
+            "features": features, "tracking": tracking, "init": init, "local_mapping": local_mapping, "loop": loop,
+            "matching": matching})  # fmt: skip
+        self.camera, self.sensor, self.seed = camera, sensor, self.cfg.seed
+        self.threaded, self.final_global_ba, self.verbose = self.cfg.threaded, self.cfg.final_global_ba, self.cfg.verbose
         fc, tc = self.cfg.features, self.cfg.tracking
         baseline = camera.baseline if sensor == "stereo" else tc.rgbd_baseline
         bf = float(camera.fx * baseline)
@@ -89,9 +84,9 @@ class OrbFrontend(Frontend):
         self.builder = FrameBuilder(camera, sensor, self.extractor, bf, tc.max_depth, stereo, fc.grid_cell,
                                     tc.depth_edge_ratio)
         self.vocab = Vocabulary.load(self.cfg.loop.vocabulary)
-        if self.cfg.mapping.triangulate_node_level > len(self.vocab.levels):
-            raise ConfigError(f"slam.mapping.triangulate_node_level: at most the vocabulary's depth "
-                              f"{len(self.vocab.levels)}; got {self.cfg.mapping.triangulate_node_level}")
+        if self.cfg.local_mapping.triangulate_node_level > len(self.vocab.levels):
+            raise ConfigError(f"slam.local_mapping.triangulate_node_level: at most the vocabulary's depth "
+                              f"{len(self.vocab.levels)}; got {self.cfg.local_mapping.triangulate_node_level}")
         # threaded: bundle adjustment in a child process (gtsam holds the GIL while optimising)
         self.ba = (BundleAdjusterProcess if self.threaded else BundleAdjuster)(
             camera.K, bf if sensor != "mono" else 0.0, scales, ur_sigma=self.setup.ur_sigma)
@@ -107,10 +102,10 @@ class OrbFrontend(Frontend):
         """The components around one map (a new one, or a checkpoint's), each given what it uses."""
         self.map, self.kfdb, self.outbox = map_, kfdb, outbox
         cfg, setup = self.cfg, self.setup
-        self.mapper = LocalMapper(cfg.mapping, cfg.matching, setup, map_, self.vocab, kfdb, self.ba, outbox, self._log)
-        self.tracker = Tracker(cfg.tracking, cfg.init, cfg.matching, setup, map_, self.vocab, kfdb, self.mapper, outbox,
+        self.local_mapping = LocalMapper(cfg.local_mapping, cfg.matching, setup, map_, self.vocab, kfdb, self.ba, outbox, self._log)
+        self.tracker = Tracker(cfg.tracking, cfg.init, cfg.matching, setup, map_, self.vocab, kfdb, self.local_mapping, outbox,
                                self.keyframes, self.seed, self._log)
-        self.loop = LoopCloser(cfg.loop, setup, map_, kfdb, self.mapper, outbox, self.tracker.on_map_corrected,
+        self.loop = LoopCloser(cfg.loop, setup, map_, kfdb, self.local_mapping, outbox, self.tracker.on_map_corrected,
                                self.seed, self._log)
 
     # ------------------------------------------------------------------ Frontend API
@@ -154,7 +149,7 @@ class OrbFrontend(Frontend):
             with self.map.lock:
                 self.loop.run_global_ba(self.cfg.loop.global_ba_iterations)
         with self.map.lock:
-            self.mapper.flush_recent()
+            self.local_mapping.flush_recent()
             self.outbox.add_poses(self.map.keyframe_poses(list(self.map.kfs) + list(self.map.culled)))
         if isinstance(self.ba, BundleAdjusterProcess):
             self.ba.close()  # restarted on demand
@@ -172,39 +167,28 @@ class OrbFrontend(Frontend):
             return self.tracker.poses.keyframe_frames(self.map.kfs)
 
     def state_dict(self) -> dict:
-        """Pickled map, keyframe database, outbox and component states (stops the mapping thread)."""
+        """The map, keyframe database, outbox and components' state fields as arrays and dicts
+        (segs.slam.orb_state; format segs.state.v3). Stops the mapping thread."""
         self.keyframes.stop()
-        data = {"map": self.map, "kfdb": self.kfdb, "outbox": self.outbox, "tracker": self.tracker.state_dict(),
-                "mapper": self.mapper.state_dict(), "loop": self.loop.state_dict()}
         with self.map.lock:
-            lock = self.map.lock
-            self.map.lock = None
-            try:
-                blob = pickle.dumps(data, protocol=pickle.HIGHEST_PROTOCOL)
-            finally:
-                self.map.lock = lock
-        return {"format": STATE_FORMAT, "blob": blob}
+            return orb_state.encode({"map": self.map, "kfdb": self.kfdb, "outbox": self.outbox,
+                                     "tracker": self.tracker.state_fields(),
+                                     "local_mapping": self.local_mapping.state_fields(), "loop": self.loop.state_fields()})  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
-        """A state of `state_dict`, or of the earlier "segs.orb.v1" layout (pickled components,
-        the frame poses as "kf" / "rel" / "abs" tuples)."""
-        fmt = state.get("format")
-        if fmt not in (STATE_FORMAT, LEGACY_STATE_FORMAT):
-            raise ConfigError("slam: checkpoint state is not an OrbFrontend state")
+        """A state of `state_dict`, or of the pickled formats before it ("segs.orb.v1" / "v2",
+        converted by segs.slam.orb_state); the frontend keeps its own configuration."""
+        parts = orb_state.decode(state)
         self.keyframes.stop()
-        data = _unpickle(state["blob"])
-        if fmt == LEGACY_STATE_FORMAT:
-            data = _from_legacy_state(data)
-        data["map"].lock = threading.RLock()
-        self._wire(data["map"], data["kfdb"], data["outbox"])
-        for name in ("tracker", "mapper", "loop"):
-            getattr(self, name).load_state_dict(data[name])
+        self._wire(parts["map"], parts["kfdb"], parts["outbox"])
+        for name in ("tracker", "local_mapping", "loop"):
+            getattr(self, name).load_state_dict(parts[name])
 
     # ------------------------------------------------------------------ mapping of a keyframe
     def _map_keyframe(self, kf: KeyFrame) -> None:
         """Local mapping, then loop closing of a new keyframe (in the mapping thread if threaded)."""
         t0 = time.perf_counter()
-        self.mapper.process(kf)
+        self.local_mapping.process(kf)
         with self.map.lock:
             if kf.kf_id in self.map.kfs:
                 self.outbox.add_keyframe(kf.kf_id, kf.w2c)
@@ -234,51 +218,5 @@ class OrbFrontend(Frontend):
             "depth_retries": len(self.tracker.depth_retries),
             "track_ms_median": float(np.median(t["track"]) * 1e3) if len(t["track"]) else float("nan"),
             "mapping_ms_median": float(np.median(t["mapping"]) * 1e3) if len(t["mapping"]) else float("nan"),
-            "local_ba_ms_median": float(np.median(self.mapper.ba_times) * 1e3) if self.mapper.ba_times else float("nan"),
+            "local_ba_ms_median": float(np.median(self.local_mapping.ba_times) * 1e3) if self.local_mapping.ba_times else float("nan"),
         }
-
-
-STATE_FORMAT = "segs.orb.v2"
-LEGACY_STATE_FORMAT = "segs.orb.v1"
-# segs.slam's modules before its stages became subpackages -> where their classes live now: blobs
-# written before the move name the old modules (a module whose name is now a package's, such as
-# segs.slam.map, defines no class in the package's __init__)
-MOVED_MODULES = {
-    "segs.slam.features": "segs.slam.features.extractor",
-    "segs.slam.stereo": "segs.slam.features.stereo",
-    "segs.slam.frame": "segs.slam.features.frame",
-    "segs.slam.map": "segs.slam.map.map",
-    "segs.slam.vocabulary": "segs.slam.map.vocabulary",
-    "segs.slam.matching": "segs.slam.estimation.matching",
-    "segs.slam.optimize": "segs.slam.estimation.optimize",
-    "segs.slam.tracking": "segs.slam.tracking.tracker",
-    "segs.slam.initialization": "segs.slam.tracking.initialization",
-    "segs.slam.frame_poses": "segs.slam.tracking.frame_poses",
-    "segs.slam.keyframe_queue": "segs.slam.backend.keyframe_queue",
-    "segs.slam.local_mapping": "segs.slam.backend.local_mapping",
-    "segs.slam.loop_closing": "segs.slam.backend.loop_closing",
-    "segs.slam.ba_process": "segs.slam.backend.ba_process",
-    "segs.slam.process": "segs.slam.runtime.process",
-    "segs.slam.runner": "segs.slam.runtime.runner",
-}
-
-
-class _MovedModulesUnpickler(pickle.Unpickler):
-    """Finds the classes of a blob that names segs.slam modules by their former names (MOVED_MODULES)."""
-
-    def find_class(self, module: str, name: str) -> Any:
-        return super().find_class(MOVED_MODULES.get(module, module), name)
-
-
-def _unpickle(blob: bytes) -> Any:
-    """A state_dict blob, of this layout or of the modules' former names."""
-    return _MovedModulesUnpickler(io.BytesIO(blob)).load()
-
-
-def _from_legacy_state(data: dict) -> dict:
-    """A "segs.orb.v1" blob (the frontend's attributes: pickled Tracker / LocalMapper / LoopCloser,
-    `_traj` tuples, `_lost`, `_kf_frames`, `_pending`, `_pending_pids`) in the current layout."""
-    tracker = dict(vars(data["tracker"]))
-    tracker["poses"] = FramePoses.from_legacy(data["_traj"], data["_lost"], data["_kf_frames"])
-    return {"map": data["map"], "kfdb": data["kfdb"], "outbox": MapOutbox(data["_pending"], data["_pending_pids"]),
-            "tracker": tracker, "mapper": dict(vars(data["mapper"])), "loop": dict(vars(data["loop"]))}

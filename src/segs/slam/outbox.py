@@ -21,11 +21,22 @@ class MapOutbox:
         self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = list(chunks or [])
         self._lock = threading.Lock()
 
+    # the pickled form (checkpoints before segs.state.v3 pickled the outbox; converted when loaded)
     def __getstate__(self) -> dict:
         return {"pending": self._pending, "chunks": self._chunks}
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(state["pending"], state["chunks"])
+
+    def state_dict(self) -> dict:
+        """The pending update and point chunks as arrays (checkpoints)."""
+        with self._lock:
+            return {"pending": self._pending.state_dict(),
+                    "chunks": [{"points": p, "colors": c, "point_kf": k} for p, c, k in self._chunks]}  # fmt: skip
+
+    @classmethod
+    def from_state(cls, state: dict) -> "MapOutbox":
+        return cls(MapUpdate.from_state(state["pending"]), [(c["points"], c["colors"], c["point_kf"]) for c in state["chunks"]])
 
     def add_keyframe(self, kf_id: int, w2c: np.ndarray) -> None:
         """A keyframe for the mapper (announced once) with its w2c [4,4]."""

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 
 class StateFields:
-    """state_dict / load_state_dict over the attribute names in `_STATE` (the collaborators a
-    component gets in its constructor are not state: a loaded frontend wires its own)."""
+    """The attributes named in `_STATE` are the component's state (the collaborators it gets in
+    its constructor are not: a loaded frontend wires its own). `state_fields()` gives their live
+    values, which segs.slam.orb_state encodes as arrays; `load_state_dict` sets decoded ones."""
 
     _STATE: tuple[str, ...] = ()
 
-    def state_dict(self) -> dict:
-        """What a checkpoint keeps."""
+    def state_fields(self) -> dict:
+        """name -> live value of each state attribute."""
         return {k: getattr(self, k) for k in self._STATE}
 
     def load_state_dict(self, state: dict) -> None:

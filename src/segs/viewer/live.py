@@ -57,9 +57,9 @@ def _fps(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.1f} frames/s"
 
 
-def dropped(frontend) -> str:
-    """Frames dropped by slam_mode=live (only a frontend process drops frames)."""
-    return str(len(frontend.dropped_frames())) if hasattr(frontend, "dropped_frames") else "0 (frames are not dropped in this mode)"
+def dropped(run) -> str:
+    """Frames dropped by slam_mode=live (only a frontend in its own process drops frames)."""
+    return "0 (frames are not dropped in this mode)" if run.mode == "interleaved" else str(len(run.dropped_frames()))
 
 
 class LiveViewer(L.Callback):
@@ -125,7 +125,7 @@ class LiveViewer(L.Callback):
             splats=Splats.from_cloud(cloud) if cloud is not None and len(cloud) else None, splats_id=self._splats_id,
             points=None if points is None else points.points.copy(),
             point_colors=None if points is None else points.colors.copy(),
-            trajectories=trajectories(self.sequence, bridge.frontend.trajectory(), self.align) if bridge is not None else None,
+            trajectories=trajectories(self.sequence, bridge.run.trajectory(), self.align) if bridge is not None else None,
             keyframes=keyframes, panel=self._panel(trainer, module, cloud),
         ))  # fmt: skip
 
@@ -134,21 +134,21 @@ class LiveViewer(L.Callback):
         step, now = trainer.global_step, time.perf_counter()
         rate = (step - self._last_step) / (now - self._t_step) if now > self._t_step and step > self._last_step else None
         self._last_step, self._t_step = step, now
-        frontend = bridge.frontend if bridge is not None else None
-        tracked = len(frontend.trajectory()) if frontend is not None else 0
+        run = bridge.run if bridge is not None else None
+        tracked = len(run.trajectory()) if run is not None else 0
         return {
             "run": "training",
             "step": f"{step} of {trainer.max_steps}",
             "test PSNR so far": self._test_psnr(module, step),
-            "keyframes (training views)": f"{len(frontend.keyframe_frames()) if frontend else 0} ({counts.training_views})",
+            "keyframes (training views)": f"{len(run.keyframe_frames()) if run else 0} ({counts.training_views})",
             "anchors": str(counts.anchors),
             "Gaussians": str(counts.gaussians),
             "Gaussians drawn": str(len(cloud) if cloud is not None else 0),
             "map points": str(len(bridge.map_points) if bridge is not None else 0),
             "frames tracked": f"{tracked} of {len(self.sequence)}",
-            "tracking": _fps(bridge.tracking_fps() if bridge is not None else None),
+            "tracking": _fps(run.tracking_fps() if run is not None else None),
             "training": "n/a" if rate is None else f"{rate:.1f} steps/s",
-            "frames dropped (live)": dropped(frontend) if frontend is not None else "n/a",
+            "frames dropped (live)": dropped(run) if run is not None else "n/a",
             "refresh": f"every {self.period():.0f} s",
         }
 
@@ -157,13 +157,13 @@ class LiveViewer(L.Callback):
         pose; the mean PSNR of the last test_views renders."""
         if self.cfg.test_views == 0:
             return "off (viewer.test_views=0)"
-        test = self.bridge.test_frames() if self.bridge is not None else []
+        test = self.bridge.run.test_frames() if self.bridge is not None else []
         if test:
             picks = np.asarray(test)[np.linspace(0, len(test) - 1, min(self.cfg.test_views, len(test))).round().astype(int)]
             index = int(picks[self._turn % len(picks)])
             self._turn += 1
             frame = self.sequence[index]
-            render = module.render_image(self.bridge.frontend.trajectory()[index], frame.camera)["image"]
+            render = module.render_image(self.bridge.run.trajectory()[index], frame.camera)["image"]
             self._test.append((index, psnr(render, torch.from_numpy(np.ascontiguousarray(frame.rgb))), step))
         if not self._test:
             return "n/a (no held-out frame tracked yet)"
@@ -180,10 +180,11 @@ class LiveViewer(L.Callback):
 
 class TrackingViewer:
     """Serves the trajectory, keyframes and map points while segs.track runs: `tick()` after
-    each frame takes a snapshot at most every refresh_s seconds while a browser is connected."""
+    each frame takes a snapshot at most every refresh_s seconds while a browser is connected.
+    run: the run's segs.pipeline RunState (trajectory, keyframes, map points)."""
 
-    def __init__(self, cfg: ViewerConfig, sequence: Sequence, frontend, points: MapPointLog, align: str):
-        self.cfg, self.sequence, self.frontend, self.points, self.align = cfg, sequence, frontend, points, align
+    def __init__(self, cfg: ViewerConfig, sequence: Sequence, run, align: str):
+        self.cfg, self.sequence, self.run, self.align = cfg, sequence, run, align
         self.server = start_server(cfg, f"segs.track: {getattr(sequence, 'name', '')}")
         self._last = -float("inf")
         self._t0 = time.perf_counter()
@@ -194,19 +195,19 @@ class TrackingViewer:
         if not force and (now - self._last < self.cfg.refresh_s or not self.server.clients()):
             return
         self._last = now
-        fe, traj = self.frontend, self.frontend.trajectory()
-        keyframes = [KeyframeNode(k, i, traj[i], self.sequence.camera) for k, i in sorted(fe.keyframe_frames().items()) if i in traj]
+        run, traj, points = self.run, self.run.trajectory(), self.run.map_points
+        keyframes = [KeyframeNode(k, i, traj[i], self.sequence.camera) for k, i in sorted(run.keyframe_frames().items()) if i in traj]
         self.server.submit(Snapshot(
-            points=self.points.points.copy(), point_colors=self.points.colors.copy(),
+            points=points.points.copy(), point_colors=points.colors.copy(),
             trajectories=trajectories(self.sequence, traj, self.align), keyframes=keyframes,
             panel={"run": "tracking", "frames tracked": f"{len(traj)} of {len(self.sequence)} ({frames_done} processed)",
-                   "lost frames": str(len(fe.lost_frames())), "keyframes": str(len(keyframes)), "map points": str(len(self.points)),
+                   "lost frames": str(len(run.lost_frames())), "keyframes": str(len(keyframes)), "map points": str(len(points)),
                    "Gaussians": "0 (tracking only)", "tracking": _fps(frames_done / (now - self._t0) if now > self._t0 else None),
-                   "frames dropped (live)": dropped(fe)},
+                   "frames dropped (live)": dropped(run)},
         ))  # fmt: skip
 
     def _selection(self, kf_id: int):
-        index = self.frontend.keyframe_frames().get(kf_id)
+        index = self.run.keyframe_frames().get(kf_id)
         if index is None:
             return np.zeros((8, 8, 3), np.uint8), None, f"keyframe {kf_id} is no longer in the map"
         image = (np.clip(self.sequence[index].rgb, 0, 1) * 255 + 0.5).astype(np.uint8)

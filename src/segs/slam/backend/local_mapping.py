@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from segs.slam.geometry import cam_center, fundamental, inv_se3, project, transform, triangulate
-from segs.slam.config import MappingConfig, MatchingConfig
+from segs.slam.config import LocalMappingConfig, MatchingConfig
 from segs.slam.map.map import KeyFrame, Map
 from segs.slam.native import kernels
 from segs.slam.estimation.matching import TH_LOW, match_for_triangulation, nearest_two_in_radius, unique_targets
@@ -28,13 +28,13 @@ from segs.slam.state import StateFields
 class LocalMapper(StateFields):
     """Local mapping of one keyframe at a time on `map` (see the module docstring).
 
-    cfg / match_cfg: the mapping and matching groups; setup: the sensor; vocab / kfdb: bag of words of each new keyframe
+    cfg / match_cfg: the local_mapping and matching groups; setup: the sensor; vocab / kfdb: bag of words of each new keyframe
     into the keyframe database; ba: the bundle adjuster (`optimize.BundleAdjuster` or its child
     process twin, `run_two_pass`); outbox: receives the mature points and the poses BA touched;
     log: event messages.
     """
 
-    def __init__(self, cfg: MappingConfig, match_cfg: MatchingConfig, setup: SensorSetup, map_: Map,
+    def __init__(self, cfg: LocalMappingConfig, match_cfg: MatchingConfig, setup: SensorSetup, map_: Map,
                  vocab: Vocabulary, kfdb: KeyFrameDatabase, ba: BundleAdjuster, outbox: MapOutbox,
                  log: Callable[[str], None]):
         self.cfg, self.match_cfg, self.setup, self.map, self.vocab, self.kfdb = cfg, match_cfg, setup, map_, vocab, kfdb

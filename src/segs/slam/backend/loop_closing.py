@@ -53,15 +53,15 @@ class MapRefinement(Protocol):
 class LoopCloser(StateFields):
     """Loop closing on `map` (see the module docstring), and the global bundle adjustment.
 
-    cfg: the loop group; setup: the sensor; kfdb: loop candidates; mapper: local mapping's search,
+    cfg: the loop group; setup: the sensor; kfdb: loop candidates; local_mapping: local mapping's search,
     fusion and BA; outbox: receives the corrections and the moved poses; on_map_corrected: called
     after keyframes moved (the tracker recomposes its last pose); seed: RANSAC seed; log: events.
     """
 
     def __init__(self, cfg: LoopConfig, setup: SensorSetup, map_: Map, kfdb: KeyFrameDatabase,
-                 mapper: MapRefinement, outbox: MapOutbox, on_map_corrected: Callable[[], None], seed: int,
+                 local_mapping: MapRefinement, outbox: MapOutbox, on_map_corrected: Callable[[], None], seed: int,
                  log: Callable[[str], None]):
-        self.cfg, self.setup, self.map, self.kfdb, self.mapper = cfg, setup, map_, kfdb, mapper
+        self.cfg, self.setup, self.map, self.kfdb, self.local_mapping = cfg, setup, map_, kfdb, local_mapping
         self.outbox, self.on_map_corrected, self.seed, self.log = outbox, on_map_corrected, int(seed), log
         self.groups: list[tuple[set[int], int]] = []
         self.last_loop_kf = -(10 ** 9)
@@ -74,7 +74,7 @@ class LoopCloser(StateFields):
         """Global BA (origin fixed; call under the map lock); reports the pose changes as corrections."""
         m = self.map
         old = {k: f.w2c.copy() for k, f in m.kfs.items()}
-        self.mapper.global_ba(None, iterations)
+        self.local_mapping.global_ba(None, iterations)
         corr = {k: inv_se3(f.w2c) @ old[k] for k, f in m.kfs.items() if k in old}
         for c in m.culled.values():
             a = m.live_ancestor(c.kf_id)
@@ -171,7 +171,7 @@ class LoopCloser(StateFields):
         matched = {int(f): int(p) for f, p in zip(fi[inl], pids[inl])}
         free = np.array([p for p in loop_pids.tolist() if p not in set(matched.values())], np.int64)
         if len(free):
-            q, k = self.mapper.project_match(kf, free, Scw, th=self.cfg.guided_search_th, fuse=False)
+            q, k = self.local_mapping.project_match(kf, free, Scw, th=self.cfg.guided_search_th, fuse=False)
             for qq, kk in zip(q.tolist(), k.tolist()):
                 matched.setdefault(int(kk), int(free[qq]))
         if len(matched) < self.cfg.min_total:
@@ -265,7 +265,7 @@ class LoopCloser(StateFields):
         before = {k: set(m.kfs[k].conn) for k in connected if k in m.kfs}
         for k in connected:
             if k in m.kfs:
-                self.mapper.fuse_into(m.kfs[k], loop_pids[m.valid[loop_pids]], th=self.cfg.fuse_th, S=corrected[k])
+                self.local_mapping.fuse_into(m.kfs[k], loop_pids[m.valid[loop_pids]], th=self.cfg.fuse_th, S=corrected[k])
         new_links: dict[int, set[int]] = {}
         for k in connected:
             if k in m.kfs:

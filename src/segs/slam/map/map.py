@@ -103,30 +103,25 @@ class Map:
         self.obs: list[dict[int, int]] = []
 
     # ----------------------------------------------------------------- point storage
+    # the per-point arrays: name, shape of a row, dtype, value of an unused row
+    POINT_ARRAYS = (
+        ("pos", (3,), np.float64, 0), ("desc", (32,), np.uint8, 0), ("normal", (3,), np.float64, 0),
+        ("dmin", (), np.float64, 0), ("dmax", (), np.float64, 0), ("visible", (), np.int64, 1),
+        ("found", (), np.int64, 1), ("ref_kf", (), np.int64, -1), ("first_kf", (), np.int64, -1),
+        ("color", (3,), np.float32, 0), ("valid", (), bool, False), ("emitted", (), bool, False),
+        ("replaced", (), np.int64, -1),
+        ("n_obs", (), np.int64, 0),  # observations, stereo / RGB-D ones counting 2 (ORB-SLAM nObs)
+        ("ba_kf", (), np.int64, -1),
+    )
+
     def _alloc(self, cap: int, keep: bool = True) -> None:
         """(Re)allocate the point arrays for cap points; keep: copy the current rows over."""
-        def grow(name, shape, dtype, fill=0):
+        for name, shape, dtype, fill in self.POINT_ARRAYS:
             old = getattr(self, name, None) if keep else None
             new = np.full((cap,) + shape, fill, dtype)
             if old is not None:
                 new[: len(old)] = old
             setattr(self, name, new)
-
-        grow("pos", (3,), np.float64)
-        grow("desc", (32,), np.uint8)
-        grow("normal", (3,), np.float64)
-        grow("dmin", (), np.float64)
-        grow("dmax", (), np.float64)
-        grow("visible", (), np.int64, 1)
-        grow("found", (), np.int64, 1)
-        grow("ref_kf", (), np.int64, -1)
-        grow("first_kf", (), np.int64, -1)
-        grow("color", (3,), np.float32)
-        grow("valid", (), bool, False)
-        grow("emitted", (), bool, False)
-        grow("replaced", (), np.int64, -1)
-        grow("n_obs", (), np.int64)  # observations, stereo / RGB-D ones counting 2 (ORB-SLAM nObs)
-        grow("ba_kf", (), np.int64, -1)
         self.cap = cap
 
     def add_points(self, pos: np.ndarray, kf: KeyFrame, kp_idx: np.ndarray, geometry: bool = True) -> np.ndarray:

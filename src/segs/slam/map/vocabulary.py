@@ -25,7 +25,7 @@ import importlib.util
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -33,7 +33,7 @@ import numpy as np
 
 from segs import process_settings
 from segs.errors import ConfigError, DataError, UserInputError
-from segs.slam.config import FeatureConfig
+from segs.slam.config import FeatureConfig, group_from_yaml
 from segs.slam.features.extractor import hamming_matrix
 from segs.slam.native import kernels
 
@@ -66,14 +66,16 @@ class TrainingConfig:
 
     k, depth: branching and levels (k^depth words); views: per image, the image itself and
     views - 1 random augmentations (`augment`); max_size: (width, height) of a view at most;
-    seed: the augmentations and the clustering; features: the extractor's (the frontend's)."""
+    seed: the augmentations and the clustering; features: the extractor's (the frontend's:
+    segs.slam.config.group_from_yaml("features")). The others' defaults are this program's
+    (python -m segs.slam.map.vocabulary), which no config composes."""
 
+    features: FeatureConfig
     k: int = 10
     depth: int = 4
     views: int = 32
     seed: int = 0
     max_size: tuple[int, int] = (640, 480)
-    features: FeatureConfig = field(default_factory=FeatureConfig)
 
 
 def _majority(desc: np.ndarray) -> np.ndarray:
@@ -388,8 +390,7 @@ def training_views(paths: list[str | Path], cfg: TrainingConfig) -> Iterator[tup
             yield augment(img, rng, cfg.max_size)
 
 
-def train_from_images(paths: list[str | Path],
-                      cfg: TrainingConfig = TrainingConfig()) -> tuple[Vocabulary, int, int]:
+def train_from_images(paths: list[str | Path], cfg: TrainingConfig) -> tuple[Vocabulary, int, int]:
     """Vocabulary from the ORB features of `training_views` (each view is an image of the idf)
     -> (vocabulary, descriptors, views)."""
     from segs.slam.features.extractor import OrbExtractor
@@ -409,7 +410,7 @@ def train_from_images(paths: list[str | Path],
 
 
 def main(argv: list[str] | None = None) -> None:
-    d = TrainingConfig()
+    d = TrainingConfig(features=group_from_yaml("features"))
     ap = argparse.ArgumentParser(description="Train an ORB vocabulary tree (default: the shipped one, "
                                  "from the bundled corpus of photographs).")
     ap.add_argument("images", nargs="*", help="image files (default: the corpus, needs the 'vocab' extra)")
@@ -424,7 +425,7 @@ def main(argv: list[str] | None = None) -> None:
             raise ConfigError("vocabulary: need -k >= 2, --depth >= 1 and --views >= 1")
         paths = sorted(a.images) if a.images else corpus_paths()
         t0 = time.perf_counter()
-        cfg = TrainingConfig(k=a.k, depth=a.depth, views=a.views, seed=a.seed)
+        cfg = TrainingConfig(d.features, k=a.k, depth=a.depth, views=a.views, seed=a.seed)
         voc, n_desc, n_views = train_from_images(paths, cfg)
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)

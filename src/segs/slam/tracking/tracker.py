@@ -61,16 +61,16 @@ class Tracker(StateFields):
     """Tracks frames against `map` and writes each frame's pose record (`poses`, a FramePoses).
 
     cfg / init_cfg / match_cfg: the tracking, init and matching groups; setup: the sensor;
-    vocab / kfdb: relocalization candidates (and cleared with the map); mapper: local mapping's
+    vocab / kfdb: relocalization candidates (and cleared with the map); local_mapping: local mapping's
     services; outbox: receives the monocular initial keyframe; mapping: whether local mapping takes
     keyframes; seed: RANSAC seeds; log: event messages. New keyframes are returned by `track`; the caller hands them to mapping.
     """
 
     def __init__(self, cfg: TrackingConfig, init_cfg: InitConfig, match_cfg: MatchingConfig, setup: SensorSetup,
-                 map_: Map, vocab: Vocabulary, kfdb: KeyFrameDatabase, mapper: LocalMapping, outbox: MapOutbox,
+                 map_: Map, vocab: Vocabulary, kfdb: KeyFrameDatabase, local_mapping: LocalMapping, outbox: MapOutbox,
                  mapping: MappingStatus, seed: int, log: Callable[[str], None]):
         self.cfg, self.init_cfg, self.match_cfg, self.setup, self.map = cfg, init_cfg, match_cfg, setup, map_
-        self.vocab, self.kfdb, self.mapper, self.outbox, self.mapping = vocab, kfdb, mapper, outbox, mapping
+        self.vocab, self.kfdb, self.local_mapping, self.outbox, self.mapping = vocab, kfdb, local_mapping, outbox, mapping
         self.seed, self.log = int(seed), log
         self.poses = FramePoses()
         self.state = TrackingState.NOT_INITIALIZED
@@ -100,9 +100,13 @@ class Tracker(StateFields):
               "init_waited")
 
     def load_state_dict(self, state: dict) -> None:
-        """Checkpoints written before TrackingState hold the plain strings: read as the Enum."""
-        super().load_state_dict(state)
+        """Decoded state fields; the state string is read as the Enum, the two-view initializer's
+        frames ({"ref", "waiting"}) go into this tracker's own initializer."""
+        init = state.get("mono_init")
+        super().load_state_dict({k: v for k, v in state.items() if k != "mono_init"})
         self.state = TrackingState(self.state)
+        if init is not None and self.mono_init is not None:
+            self.mono_init.ref, self.mono_init.waiting = init["ref"], list(init["waiting"])
 
     # ------------------------------------------------------------------ entry point
     def track(self, frame: SlamFrame) -> KeyFrame | None:
@@ -181,7 +185,7 @@ class Tracker(StateFields):
         """Drop a rejected (monocular) initial map; keyframe ids keep counting (never reused)."""
         self.map.clear()
         self.kfdb.clear()
-        self.mapper.clear_recent()
+        self.local_mapping.clear_recent()
 
     def _initialize(self, frame: SlamFrame) -> KeyFrame | None:
         if self.setup.sensor == "mono":
@@ -265,7 +269,7 @@ class Tracker(StateFields):
         m.update_descriptors(pids)
         m.update_connections(kf0)
         m.update_connections(kf1)
-        self.mapper.global_ba([kf0.kf_id, kf1.kf_id], iterations=self.init_cfg.ba_iterations, fix_scale=False)
+        self.local_mapping.global_ba([kf0.kf_id, kf1.kf_id], iterations=self.init_cfg.ba_iterations, fix_scale=False)
         _, p0 = m.kf_point_ids(kf0)
         depth = transform(kf0.w2c, m.pos[p0])[:, 2]
         _, p1 = m.kf_point_ids(kf1)
@@ -284,7 +288,7 @@ class Tracker(StateFields):
                 self._add_depth_points(kf, np.flatnonzero((kf.depth > 0) & (kf.points < 0)))
         frame.w2c = kf1.w2c.copy()
         frame.points = kf1.points.copy()
-        self.mapper.register_initial([kf0, kf1], pids)
+        self.local_mapping.register_initial([kf0, kf1], pids)
         waiting = self.mono_init.waiting
         self.mono_init.reset()
         self.poses.add_keyframe(kf0.frame_index, kf0.kf_id)
@@ -327,7 +331,7 @@ class Tracker(StateFields):
         pc = self.setup.backproject(kf.kp.uv[idx], kf.depth[idx])
         pw = transform(inv_se3(kf.w2c), pc)
         pids = self.map.add_points(pw, kf, idx)
-        self.mapper.add_recent(pids)
+        self.local_mapping.add_recent(pids)
         return pids
 
     # ------------------------------------------------------------------ frame-to-frame
