@@ -46,20 +46,39 @@ def _ate(r: dict) -> str:
     return f"{value * 100:.2f} cm ({align})" if value < 1.0 else f"{value:.2f} m ({align})"
 
 
+def _portable(arg: str) -> str:
+    """An override with machine-specific folders written as the README's commands write them:
+    .../shared/data/X -> ../shared/data/X, .../datasets/X -> datasets/X."""
+    arg = re.sub(r"=[^=\s]*/shared/data/", "=../shared/data/", arg)
+    return re.sub(r"=/[^=\s]*/datasets/", "=datasets/", arg)
+
+
+def _sequence(r: dict, overrides: list[str]) -> str:
+    """The sequence's folder name (a reader's inner folder such as seq/ left out), with its frame range."""
+    parts = Path(r.get("sequence") or "?").parts
+    name = parts[-2] if len(parts) > 1 and parts[-1] in ("seq", "sequence") else parts[-1]
+    frames = next((o.split("=", 1)[1] for o in overrides if o.startswith("data.frames=")), None)
+    if frames:
+        a, b = (int(x) for x in frames.strip("[]").split(","))
+        name += f", frames {a}-{b - 1}"
+    return name
+
+
 def row(kind: str, r: dict) -> str:
     """One markdown row of the headline table."""
     p = r["provenance"]
     mach = p.get("machine") or {}
     commit = (p.get("git_commit") or "not a checkout")[:7] + (" (dirty)" if p.get("git_dirty") else "")
-    command = " ".join([f"python -m segs.{kind}", *(p.get("overrides") or [])])
-    fps = r.get("tracking_fps")
+    overrides = [o for o in (p.get("overrides") or []) if not o.startswith(("task_name=", "hydra."))]
+    command = " ".join([f"python -m segs.{kind}", *(_portable(o) for o in overrides)])
+    fps = None if p.get("frontend") == "known_poses" else r.get("tracking_fps")
     if kind == "train":
         images = f"{r['psnr']:.2f} dB / {r['ssim']:.3f} ({r['test_views']})"
         training = f"{r['iterations']} it, {r['mapping_time_s']:.0f} s"
         mb = f"{r['model_mb']:.1f}"
     else:
         images, training, mb = "-", "- (tracking only)", "-"
-    cells = [r.get("sequence") or "?", p.get("sensor", "?"), f"{r['frames_tracked']}/{r['frames']}", _ate(r), images,
+    cells = [_sequence(r, overrides), p.get("sensor", "?"), f"{r['frames_tracked']}/{r['frames']}", _ate(r), images,
              "-" if fps is None else f"{fps:.1f}", training, mb, f"{mach.get('cpu', '?')}, {mach.get('cores', '?')} cores", commit,
              f"`{command}`"]  # fmt: skip
     return "| " + " | ".join(cells) + " |"

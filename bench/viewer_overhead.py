@@ -132,7 +132,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="runs of each side, interleaved (default 3)")
     parser.add_argument("--refresh", type=float, default=5.0, help="viewer.refresh_s (default 5, conf/viewer/on.yaml)")
     parser.add_argument("--browser-nice", type=int, default=19, help="nice level of the browser (default 19; see the docstring)")
-    parser.add_argument("--json", default="viewer_overhead.json", help="where to write the figures (default viewer_overhead.json)")
+    parser.add_argument("--json", default=str(_harness.OUTPUTS / "viewer_overhead.json"),
+                        help="where to write the figures (default outputs/bench/viewer_overhead.json)")
     parser.add_argument("overrides", nargs="*", help="more segs.train overrides (e.g. +experiment=seven_scenes_rgbd data.root=...)")
     args = parser.parse_args()
     if not Path(CHROMIUM).is_file():

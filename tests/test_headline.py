@@ -52,3 +52,15 @@ def test_a_folder_without_a_result_or_provenance_is_refused_by_name(tmp_path):
     stopped = _run(tmp_path / "stopped", "metrics.json", {"status": "not_evaluated", "provenance": PROV})
     with pytest.raises(SystemExit, match="not a finished, evaluated run"):
         headline.read_run(stopped)
+
+
+def test_rows_name_the_frame_range_and_write_folders_as_the_readme_does():
+    prov = {**PROV, "frontend": "known_poses", "overrides": [
+        "+experiment=seven_scenes_rgbd", "data.frames=[300,600]", "data.root=/home/u/shared/data/7scenes_redkitchen_0000_0599",
+        "task_name=track"]}  # fmt: skip
+    result = {"sequence": "7scenes_redkitchen_0000_0599/seq", "frames_tracked": 300, "frames": 300, "ate_rmse_m": 0.0211,
+              "ate": {"align": "se3"}, "tracking_fps": 700.0, "provenance": prov}  # fmt: skip
+    line = headline.row("track", result)
+    assert line.startswith("| 7scenes_redkitchen_0000_0599, frames 300-599 | rgbd | 300/300 | 2.11 cm (SE(3)) | - | - |")
+    assert "data.root=../shared/data/7scenes_redkitchen_0000_0599`" in line and "task_name" not in line
+    assert headline._portable("data.root=/work/x/datasets/tum_fr3_cabinet_kf") == "data.root=datasets/tum_fr3_cabinet_kf"
