@@ -185,6 +185,13 @@ class PeerModel:
         self.scales = torch.exp(col("scale_0", "scale_1", "scale_2"))
         self.quats = col("rot_0", "rot_1", "rot_2", "rot_3")
         self.opacities = torch.sigmoid(torch.from_numpy(np.asarray(v["opacity"], np.float32)))
+        # a diverged run can write nan / inf rows: they draw nothing in its own renderer, so they are left out (counted)
+        finite = torch.stack([t.reshape(n, -1).isfinite().all(1) for t in
+                              (self.means, self.scales, self.quats, self.opacities, self.coeffs)]).all(0)  # fmt: skip
+        self.non_finite = int((~finite).sum())
+        if self.non_finite:
+            self.means, self.scales, self.quats = self.means[finite], self.scales[finite], self.quats[finite]
+            self.opacities, self.coeffs, self.n = self.opacities[finite], self.coeffs[finite], int(finite.sum())
         self.centre, self.scale = torch.tensor(frame["centre"], dtype=torch.float32), float(frame["scale"])
 
     def model_mb(self) -> float:

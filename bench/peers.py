@@ -168,7 +168,8 @@ def score_peer(ply: str, split: dict, source, standard: bool = True) -> dict:
                           split["crop"])  # fmt: skip
         out.update(psnr_std=std["psnr"], ssim_std=std["ssim"])
     active = int((model.opacities > 0.005).sum())
-    return {**out, "step": model.step, "gaussians": model.n, "active": active, "model_mb": model.model_mb()}
+    return {**out, "step": model.step, "gaussians": model.n, "active": active, "model_mb": model.model_mb(),
+            "non_finite": model.non_finite}
 
 
 def check_renderer(binary: str, split: dict, work: Path) -> float:

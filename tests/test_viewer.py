@@ -24,6 +24,7 @@ from segs.errors import ConfigError, DataError
 viser = pytest.importorskip("viser", reason='the viewer extra is not installed (pip install -e ".[viewer]")')
 
 from segs.viewer.saved_run import read_run  # noqa: E402
+from segs.viewer.scene import MIN_OPACITY, Splats  # noqa: E402
 from segs.viewer.server import choose_port  # noqa: E402
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -98,8 +99,10 @@ def test_the_server_serves_a_train_run(train_run):
         page = urllib.request.urlopen(server.url, timeout=10).read().decode()
         assert "<html" in page.lower()
         splats = server.nodes["/map/gaussians"]
-        n_ply = len(PlyData.read(str(train_run / "point_cloud.ply"))["vertex"])
-        assert len(splats.buffer) == n_ply > 0  # the Gaussians the mapper decodes = the exported ones
+        logits = np.asarray(PlyData.read(str(train_run / "point_cloud.ply"))["vertex"]["opacity"], np.float64)
+        n_visible = int((1.0 / (1.0 + np.exp(-logits)) >= MIN_OPACITY).sum())
+        # the Gaussians the mapper decodes = the exported ones, less those that cannot show
+        assert n_visible > 0 and abs(len(splats.buffer) - n_visible) <= 2 and len(splats.buffer) < len(logits)
         assert len(server.nodes["/map/points"].points) == len(PlyData.read(str(train_run / "map_points.ply"))["vertex"]) > 0
         assert {"/trajectory/estimated", "/trajectory/ground_truth"} <= set(server.nodes)
         frustums = [k for k in server.nodes if k.startswith("/keyframes/")]
@@ -247,3 +250,13 @@ def test_a_browser_shows_the_map_growing_during_training(tmp_path):
     assert blank.var() < 50, "the canvas is not blank before the first snapshot"
     assert first.var() > 100 and last.var() > 100, (first.var(), last.var())  # the map is drawn
     assert np.abs(first - last).mean() > 1.0  # and it changed between the two steps
+
+
+def test_only_gaussians_that_can_change_a_pixel_are_sent():
+    n = 6
+    op = np.array([0.0, 1e-3, MIN_OPACITY * 0.99, MIN_OPACITY, 0.5, 1.0], np.float32)
+    splats = Splats(np.arange(3 * n, dtype=np.float32).reshape(n, 3), np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                    np.full((n, 3), 0.1, np.float32), op, np.full((n, 3), 0.5, np.float32))  # fmt: skip
+    shown = splats.visible()
+    assert len(shown) == 3 and np.array_equal(shown.opacities, op[3:]) and np.array_equal(shown.means, splats.means[3:])
+    assert splats.visible(0.0) is splats

@@ -65,9 +65,9 @@ def snapshot(run: SavedRun, mapper, sequence, note: str | None) -> Snapshot:
     """Everything the run folder shows, as one snapshot."""
     splats = None
     if mapper is not None and (cloud := mapper.gaussians()) is not None:
-        splats = Splats.from_cloud(cloud)
+        splats = Splats.from_cloud(cloud).visible()
     elif run.ply is not None:
-        splats = read_gaussian_ply(run.ply)
+        splats = read_gaussian_ply(run.ply).visible()
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
     trajs = None
     if run.trajectory is not None:
@@ -106,7 +106,7 @@ def panel(run: SavedRun, mapper, splats, note: str | None) -> dict[str, str]:
         rows["test PSNR so far"] = f"{fmt('psnr', '.2f', ' dB')} ({r.get('test_views', 0)} test views)" if r else "n/a (not evaluated)"
         rows["anchors"] = str(counts.anchors if counts else r.get("anchors", "n/a"))
         rows["Gaussians"] = str(counts.gaussians if counts else r.get("gaussians", "n/a"))
-        rows["Gaussians drawn"] = str(len(splats) if splats is not None else 0)
+        rows["Gaussians drawn (opacity >= 1/255)"] = str(len(splats) if splats is not None else 0)
         rows["training"] = fmt("iterations_per_s", ".1f", " steps/s")
     else:
         rows["Gaussians"] = "0 (tracking only)"

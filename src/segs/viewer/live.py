@@ -112,6 +112,7 @@ class LiveViewer(L.Callback):
     def refresh(self, trainer, module: GaussianMapper) -> None:
         """Take a snapshot now and hand it to the server."""
         cloud = module.gaussians()
+        splats = Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
         self._splats_id += 1
         views = module.training_views()
         for v in views:
@@ -122,14 +123,14 @@ class LiveViewer(L.Callback):
         bridge = self.bridge
         points: MapPointLog | None = bridge.map_points if bridge is not None else None
         self.server.submit(Snapshot(
-            splats=Splats.from_cloud(cloud) if cloud is not None and len(cloud) else None, splats_id=self._splats_id,
+            splats=splats, splats_id=self._splats_id,
             points=None if points is None else points.points.copy(),
             point_colors=None if points is None else points.colors.copy(),
             trajectories=trajectories(self.sequence, bridge.run.trajectory(), self.align) if bridge is not None else None,
-            keyframes=keyframes, panel=self._panel(trainer, module, cloud),
+            keyframes=keyframes, panel=self._panel(trainer, module, splats),
         ))  # fmt: skip
 
-    def _panel(self, trainer, module: GaussianMapper, cloud) -> dict[str, str]:
+    def _panel(self, trainer, module: GaussianMapper, splats: Splats | None) -> dict[str, str]:
         counts, bridge = module.counts(), self.bridge
         step, now = trainer.global_step, time.perf_counter()
         rate = (step - self._last_step) / (now - self._t_step) if now > self._t_step and step > self._last_step else None
@@ -143,7 +144,7 @@ class LiveViewer(L.Callback):
             "keyframes (training views)": f"{len(run.keyframe_frames()) if run else 0} ({counts.training_views})",
             "anchors": str(counts.anchors),
             "Gaussians": str(counts.gaussians),
-            "Gaussians drawn": str(len(cloud) if cloud is not None else 0),
+            "Gaussians drawn (opacity >= 1/255)": str(len(splats) if splats is not None else 0),
             "map points": str(len(bridge.map_points) if bridge is not None else 0),
             "frames tracked": f"{tracked} of {len(self.sequence)}",
             "tracking": _fps(run.tracking_fps() if run is not None else None),

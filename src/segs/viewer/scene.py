@@ -15,6 +15,8 @@ from segs.data.frame import Camera
 from segs.modules.contract import GaussianCloud
 from segs.trajectory import alignment
 
+MIN_OPACITY = 1.0 / 255.0  # below it a Gaussian cannot change an 8-bit pixel
+
 
 @dataclass
 class Splats:
@@ -34,6 +36,14 @@ class Splats:
 
     def __len__(self) -> int:
         return len(self.means)
+
+    def visible(self, min_opacity: float = MIN_OPACITY) -> "Splats":
+        """The Gaussians with opacity >= min_opacity (the rest cannot change an 8-bit pixel):
+        what the browser is sent. A SEGS map decodes k per anchor and most of them are near 0."""
+        keep = self.opacities >= min_opacity
+        if keep.all():
+            return self
+        return Splats(*(a[keep] for a in (self.means, self.quats, self.scales, self.opacities, self.colors)))
 
     def covariances(self) -> np.ndarray:
         """[N,3,3] R diag(scale^2) R^T."""
