@@ -115,8 +115,8 @@ def interleaved(schedule: int, warmup: int, iters: int, backend: str, experiment
     for _ in range(repeats):
         for name, overrides in (("defaults", list(extra)), ("variant", list(extra) + list(variant))):
             runs[name].append(bench("segs", schedule, warmup, iters, backend, "cpu", experiment, overrides, factor))
-    out = {name: {"total": _harness.medians(rows)["total"], "gaussians": _harness.medians(rows)["gaussians"],
-                  "anchors": rows[-1]["anchors"]} for name, rows in runs.items()}  # fmt: skip
+    med = {name: _harness.medians(rows) for name, rows in runs.items()}
+    out = {name: {"total": m["total"], "gaussians": m["gaussians"], "anchors": runs[name][-1]["anchors"]} for name, m in med.items()}
     out["ratio"] = out["variant"]["total"] / out["defaults"]["total"]
     return out
 
