@@ -173,7 +173,8 @@ class GaussianMapperModule(L.LightningModule):
         edits = self.model.maintain(step + 1, opt)
         self.iteration_ms.append((time.perf_counter() - t0) * 1000.0)
         self.loss_history.append(float(terms["total"].detach()))
-        self._log_step(terms, out.image.detach(), gt, edits, factor)
+        if (step + 1) % self.trainer.log_every_n_steps == 0:
+            self._log_step(terms, out.image.detach(), gt, edits, factor)
         return terms["total"].detach()
 
     def resolution_factor(self, step: int) -> int:
@@ -182,6 +183,9 @@ class GaussianMapperModule(L.LightningModule):
         return downscale_factor(step, total, self.num_downscales, self.downscale_phase)
 
     def _log_step(self, terms: dict, image: torch.Tensor, gt: torch.Tensor, edits: dict, factor: int) -> None:
+        """The step's scalars, on the steps the logger writes (Lightning writes the values logged in
+        the batch of every log_every_n_steps-th optimizer step; densification runs every 100 steps,
+        on such a step with the default 10): logging every step cost 3-4 ms of a 35-55 ms CPU step."""
         counts = self.model.counts()
         self.log("loss", terms["total"].detach(), prog_bar=True, on_step=True, on_epoch=False)
         self.log("gaussians", float(counts["gaussians"]), prog_bar=True, on_step=True, on_epoch=False)
