@@ -12,7 +12,14 @@ centimetres to the side. Two measurements on the real frames, no calibration tar
    gradient under the depth edges is maximal at the right values (coarse grid, then a local
    search).
 
+3. with --self-calibration, instead: the focal length from the images alone, no ground truth
+   (Mendonca and Cipolla's criterion): for frame pairs 20 and 40 frames apart, the fundamental
+   matrix of their ORB matches (RANSAC at 1 px, then least squares on its inliers) makes an
+   essential matrix K^T F K whose two non-zero singular values are equal at the true K; the mean
+   of (s1 - s2) / (s1 + s2) over the pairs per candidate focal length (principal point 323, 240).
+
     python bench/calibrate_7scenes.py [--root ../shared/data/7scenes_redkitchen_0000_0599]
+    python bench/calibrate_7scenes.py --self-calibration
 
 Prints both searches and writes outputs/bench/calibrate_7scenes.json. The reader's defaults
 (segs.data.seven_scenes.COLOR_INTRINSICS, DEPTH_TO_COLOR) are the values this measured.
@@ -72,6 +79,26 @@ def focal_search(pairs, focals) -> dict[float, float]:
     return out
 
 
+def self_calibration(pairs, focals, cx: float = 323.0, cy: float = 240.0) -> dict[float, float]:
+    """Mean singular-value gap (s1 - s2) / (s1 + s2) of K^T F K over the pairs' fundamental
+    matrices F (from their matches alone) per candidate focal length (0 for a consistent K)."""
+    Fs = []
+    for xi, xj, _ in pairs:
+        F, mask = cv2.findFundamentalMat(xi, xj, cv2.FM_RANSAC, 1.0, 0.999)
+        if F is None or F.shape != (3, 3) or mask.sum() < 30:
+            continue
+        keep = mask.ravel().astype(bool)
+        F, _ = cv2.findFundamentalMat(xi[keep], xj[keep], cv2.FM_8POINT)
+        if F is not None and F.shape == (3, 3):
+            Fs.append(F)
+    out = {}
+    for f in focals:
+        K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+        s = np.array([np.linalg.svd(K.T @ F @ K, compute_uv=False) for F in Fs])
+        out[float(f)] = float(np.mean((s[:, 0] - s[:, 1]) / (s[:, 0] + s[:, 1])))
+    return out
+
+
 def edge_frames(root: Path, step: int = 15) -> list[tuple[np.ndarray, np.ndarray]]:
     """(raw depth [H,W] m in the depth camera, colour gradient magnitude [H,W] normalised to mean 1)."""
     seq = SevenScenesSequence(root, sensor="rgbd", intrinsics=[585, 585, 320, 240], depth_to_color=[0] * 6)
@@ -120,8 +147,17 @@ def main() -> None:
     p.add_argument("--root", type=Path, default=_harness.SEVEN_SCENES)
     p.add_argument("--focal", type=float, default=COLOR_INTRINSICS[0], help="focal length of the registration search")
     p.add_argument("--out", type=Path, default=_harness.OUTPUTS / "calibrate_7scenes.json")
+    p.add_argument("--self-calibration", action="store_true", help="only the focal length from the images alone")
     args = p.parse_args()
     seq = SevenScenesSequence(args.root, sensor="mono", intrinsics=[585, 585, 320, 240])
+    if args.self_calibration:
+        pairs = epipolar_pairs(seq, step=15, gap=20) + epipolar_pairs(seq, step=15, gap=40)
+        gap = self_calibration(pairs, list(range(450, 651, 15)))
+        for f, g in gap.items():
+            print(f"focal {f:.0f}: mean singular-value gap of K^T F K {g:.5f}")
+        _harness.write_json(args.out.with_name("calibrate_7scenes_self.json"),
+                            {"pairs": len(pairs), "singular_value_gap_by_focal": gap, "best_focal": min(gap, key=gap.get)})
+        return
     focal = focal_search(epipolar_pairs(seq), [500, 510, 515, 520, 525, 530, 540, 560, 585])
     for f, e in focal.items():
         print(f"focal {f:.0f}: median Sampson error {e:.3f} px")

@@ -187,3 +187,24 @@ def test_frames_read_in_a_thread_reuse_freed_memory(seven_scenes_root):
 
     kept, default = faults(), faults(SEGS_MALLOC="default")
     assert kept < 0.3 * default, (kept, default)
+
+
+def test_colour_distortion_undistorts_colour_only(synthetic, tmp_path):
+    """data.distortion remaps the colour (and the lossless reference) to the pinhole of the same
+    intrinsics, as cv2.undistort does; the depth and the poses stay; zeros change nothing."""
+    root = write_seven_scenes(synthetic, tmp_path / "seq")
+    plain = SevenScenesSequence(root, **_identity(synthetic))
+    zeros = SevenScenesSequence(root, distortion=[0, 0, 0, 0], **_identity(synthetic))
+    d = [-0.3, 0.1, 0.0, 0.0]
+    lens = SevenScenesSequence(root, distortion=d, **_identity(synthetic))
+    f, g, z = lens[2], plain[2], zeros[2]
+    np.testing.assert_array_equal(z.rgb, g.rgb)
+    K, inner = plain.native_camera.K, (slice(8, -8), slice(8, -8))  # borders: the remaps' edges differ
+    err = np.abs(f.rgb - cv2.undistort(g.rgb, K, np.array(d)))[inner].mean()
+    wrong = np.abs(f.rgb - cv2.undistort(g.rgb, K, -np.array(d)))[inner].mean()
+    assert err < 0.003 and wrong > 5 * err  # (cv2.undistort interpolates in fixed point)
+    assert np.abs(f.rgb - g.rgb).max() > 0.05  # the lens moves the picture
+    np.testing.assert_array_equal(f.depth, g.depth)
+    np.testing.assert_allclose(f.pose_c2w, g.pose_c2w)
+    with pytest.raises(ConfigError, match="data.distortion"):
+        SevenScenesSequence(root, distortion=[0.1, 0.2], **_identity(synthetic))

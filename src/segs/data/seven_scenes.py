@@ -12,7 +12,8 @@ colour camera is a different camera: its intrinsics and its pose relative to the
 not published. Measured here (docs/data.md "7-Scenes calibration", bench/calibrate_7scenes.py) from
 the frames and the ground truth: COLOR_INTRINSICS and DEPTH_TO_COLOR below. The reader registers
 the depth into the colour camera (cv2.registerDepth) and gives colour-camera ground truth, so that
-`camera`, `depth` and `gt_poses` describe one camera, as in TUM RGB-D. No lens distortion.
+`camera`, `depth` and `gt_poses` describe one camera, as in TUM RGB-D. No lens distortion unless
+`distortion` is given (the colour images are then undistorted on load, keeping the intrinsics).
 
 Lossless reference colour: a folder ``lossless_color*`` beside the sequence holding
 ``frame-XXXXXX.color.png`` copies of some frames (used to measure PSNR without JPEG artefacts)
@@ -23,6 +24,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, frame_range, gt_pose, numbers, pinhole
@@ -99,6 +101,8 @@ class SevenScenesSequence(ReaderSequence):
         depth_to_color: [rx, ry, rz, tx, ty, tz] depth->colour camera transform (default:
             DEPTH_TO_COLOR, measured). With the depth intrinsics as colour intrinsics and zeros
             here, the depth is used unregistered (the published convention).
+        distortion: colour lens [k1, k2, p1, p2(, k3)] (OpenCV); the colour images are undistorted
+            to the pinhole of `intrinsics` on load (default: none).
         depth_scale: depth PNG units per metre (1000: millimetres).
         fps: frame rate of the timestamps (frame number / fps).
     """
@@ -106,7 +110,7 @@ class SevenScenesSequence(ReaderSequence):
     def __init__(self, root: str | Path, sensor: str = "rgbd", sequence: str | int | None = None,
                  frames=None, downscale: float = 1, intrinsics=None, depth_intrinsics=None,
                  depth_to_color=None, depth_scale: float = DEPTH_SCALE, fps: float = 30.0,
-                 name: str | None = None):
+                 name: str | None = None, distortion=None):
         self.root = require_dir(root, "7-Scenes folder")
         check_sensor(sensor, {"mono": None, "rgbd": None, "stereo": "7-Scenes has no stereo camera"}, self.root)
         if not float(fps) > 0:
@@ -130,6 +134,7 @@ class SevenScenesSequence(ReaderSequence):
         self.timestamps = numbers_.astype(np.float64) / float(fps)
         pose_paths = [Path(f"{s}.pose.txt") for s in stem]
         self._calibrate(intrinsics, depth_intrinsics, depth_to_color, downscale)
+        self._undistort_maps(distortion)
         self.gt_poses = None
         if any(p.is_file() for p in pose_paths):
             depth_c2w = np.stack([read_pose(p) if p.is_file() else np.full((4, 4), np.nan) for p in pose_paths])
@@ -158,11 +163,27 @@ class SevenScenesSequence(ReaderSequence):
         self.registration = DepthRegistration(depth_intrinsics, DEPTH_TO_COLOR if depth_to_color is None
                                               else depth_to_color, "data")
 
+    def _undistort_maps(self, distortion) -> None:
+        """Remap tables from the colour lens [k1, k2, p1, p2(, k3)] (OpenCV's model) to the pinhole
+        of the same intrinsics; none for null or zeros. The registered depth is already that
+        pinhole's (cv2.registerDepth has no colour distortion), so only colour is remapped."""
+        d = numbers(distortion, (4, 5), "data.distortion")
+        self.distortion, self._maps = d, None
+        if d is not None and np.any(d != 0):
+            K = self.native_camera.K
+            h, w = self.shape
+            self._maps = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
+
+    def _undistort(self, rgb: np.ndarray) -> np.ndarray:
+        if self._maps is None:
+            return rgb
+        return cv2.remap(rgb, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
     def __len__(self) -> int:
         return len(self.rgb_paths)
 
     def load(self, index: int) -> Frame:
-        rgb = read_rgb(self.rgb_paths[index], self.shape)
+        rgb = self._undistort(read_rgb(self.rgb_paths[index], self.shape))
         depth = None
         if self.depth_paths is not None:
             depth = read_depth(self.depth_paths[index], self.depth_scale, self.shape)
@@ -176,10 +197,8 @@ class SevenScenesSequence(ReaderSequence):
         path = self.lossless.get(int(index))
         if path is None:
             return None
-        rgb = read_rgb(path, self.shape)
+        rgb = self._undistort(read_rgb(path, self.shape))
         if self.camera != self.native_camera:
-            import cv2
-
             rgb = cv2.resize(rgb, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
         return rgb
 
