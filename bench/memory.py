@@ -8,9 +8,10 @@ callbacks included) and records at every stage: the resident set (VmRSS) split i
 memory and mapped files (libraries), the C heap (glibc mallinfo2: bytes in use and bytes free
 but kept), and the highest RSS since the previous stage (a sampler thread, every 20 ms). Stages:
 `import torch`, `import segs.train`, the run built (sequence, frontend, module, trainer), the
-initial keyframes fed, steps 1 / 100 / 500 / 1,000 / 1,500 / the last, the final checkpoint and
-the evaluation. The peak is the kernel's (ru_maxrss). MB = 10^6 bytes. Writes
-outputs/bench/memory.json (the stages, the peak, the machine and commit record).
+initial keyframes fed, steps 1 / 100 / 500 / 1,000 / 1,500 / the last, the final checkpoint, the
+heap's free pages released (segs.process_settings.release_free_memory) and the evaluation. The
+peak is the kernel's (ru_maxrss). MB = 10^6 bytes. Writes outputs/bench/memory.json (the stages,
+the peak, the machine and commit record).
 """
 from __future__ import annotations
 
@@ -90,11 +91,13 @@ def main(overrides: list[str]) -> None:
 
     import segs.evaluation
     import segs.train as train
+    from segs import process_settings
     from segs.config import compose
 
     stages.mark("import segs.train")
     cfg = compose(overrides, output_dir=f"outputs/bench/memory_{time.strftime('%Y%m%d_%H%M%S')}")
     build, save_final, render = train.build, train.save_final, segs.evaluation.render_test_views
+    release = process_settings.release_free_memory
 
     class Marks(L.Callback):
         def on_train_start(self, trainer, module):
@@ -116,12 +119,18 @@ def main(overrides: list[str]) -> None:
         stages.mark("final checkpoint written")
         return out
 
+    def released():
+        out = release()
+        stages.mark("heap's free pages released")
+        return out
+
     def rendered(*args, **kwargs):
         out = render(*args, **kwargs)
         stages.mark("test views rendered and scored")
         return out
 
     train.build, train.save_final, segs.evaluation.render_test_views = built, saved, rendered
+    process_settings.release_free_memory = released
     metrics = train.run(cfg)
     stages.mark("evaluation written")
     print(f"\npython bench/memory.py {' '.join(overrides)}: PSNR {metrics['psnr']:.2f} dB, {metrics['anchors']:,} anchors\n")

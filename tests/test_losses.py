@@ -56,6 +56,15 @@ def test_loss_ssim_takes_the_fused_kernel_on_cpu_float32_and_kornia_otherwise(mo
         fused_ssim(render.permute(2, 0, 1), gt[:-1].permute(2, 0, 1), torch.ones(3) / 3, 0.01**2, 0.03**2)
 
 
+@pytest.mark.parametrize("taps", [3, 7, 11])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gaussian_window_is_kornias_to_the_bit(taps, dtype):
+    ours = losses.gaussian_window(taps, 1.5, torch.zeros(1, dtype=dtype))
+    ref = kornia.filters.get_gaussian_kernel1d(taps, 1.5, dtype=dtype).flatten()
+    assert ours.dtype == dtype and ours.shape == (taps,)
+    assert torch.equal(ours, ref)
+
+
 def test_ssim_of_identical_images_is_one():
     _, gt = _pair(40, 40)
     assert float(losses.ssim(gt, gt)) == pytest.approx(1.0, abs=1e-9)

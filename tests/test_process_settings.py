@@ -128,3 +128,32 @@ def test_programs_that_load_torch_apply_the_settings_before_their_imports(progra
 def test_other_programs_apply_the_settings_first_in_their_main_block(program):
     blocks = _main_blocks(SRC / program)
     assert blocks and _applies_first(blocks[-1][1]), f"{program}: __main__ does not start with process_settings.apply()"
+
+
+# 400 blocks of 256 kB (glibc heap memory under apply()'s thresholds, written: resident), a small
+# block allocated after them (pins the heap's top), the 400 freed: kept by the heap until released
+RELEASE_PROBE = """
+import json
+from segs import process_settings
+process_settings.apply()
+
+def rss_mb():
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+
+blocks = [bytearray(256 << 10) for _ in range(400)]
+pin = bytearray(1 << 10)
+del blocks
+kept = rss_mb()
+released = process_settings.release_free_memory()
+print(json.dumps({"released": released, "kept_mb": kept, "after_mb": rss_mb()}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim")
+def test_release_free_memory_gives_the_kept_heap_back():
+    res = subprocess.run([sys.executable, "-c", RELEASE_PROBE], capture_output=True, text=True, env=_env(), timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.splitlines()[-1])
+    assert out["released"] is True
+    assert out["kept_mb"] - out["after_mb"] > 80, out  # of the 100 MB freed

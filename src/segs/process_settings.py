@@ -11,6 +11,9 @@ trainer, bench/_harness.py and tests/conftest.py. It sets
   torch loads: a call after that warns, and the child processes inherit it;
 - with glibc, an allocator that keeps freed heap memory for the next frame (`SEGS_MALLOC=default`
   opts out; docs/decisions/018-freed-memory-kept.md). Per process: each child calls apply() too.
+
+`release_free_memory()` gives the heap's free pages back between phases of a run (segs.train
+after training: docs/decisions/029-peak-memory.md).
 """
 from __future__ import annotations
 
@@ -34,6 +37,19 @@ def apply() -> None:
                           "reach its OpenMP threads (call apply() before importing torch)", RuntimeWarning, stacklevel=2)
         os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     _reuse_freed_memory()
+
+
+def release_free_memory() -> bool:
+    """glibc: give the free pages of the heap back to the kernel (malloc_trim(0)); what is kept
+    for the next allocation (apply()) is worth keeping while a phase repeats itself (training
+    steps), not once it has ended. -> whether glibc released any memory (False elsewhere)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return False
+    return bool(trim(0))
 
 
 def malloc_setting() -> str:

@@ -24,6 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from segs import process_settings
 from segs.callbacks import GracefulInterrupt, MemoryGuard, SlamBridge, save_atomic
 from segs.callbacks.checkpoint import DirectCheckpointIO
 from segs.callbacks.interrupt import Interrupted
@@ -72,9 +73,13 @@ class TrainingRun:
     final_checkpoint: str | None = None
 
     def execute(self) -> dict:
-        """Fit, final checkpoint, the frames not fed yet, evaluation; -> metrics.json's dict."""
+        """Fit, final checkpoint, the frames not fed yet, evaluation; -> metrics.json's dict.
+        Between training and the evaluation the heap's free pages (the training steps' working
+        set) go back to the kernel: the evaluation's own memory then adds to less than the
+        training's peak (docs/decisions/029-peak-memory.md)."""
         self.fit()
         notes = self.save_final()
+        process_settings.release_free_memory()
         return self.evaluate(notes)
 
     def fit(self) -> None:

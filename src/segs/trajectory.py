@@ -2,6 +2,10 @@
 
 Estimated poses come as world-to-camera matrices keyed by frame index (what the frontends
 produce); ground truth comes as camera-to-world matrices per frame (what the readers produce).
+
+evo's file module is imported by the two functions that read and write TUM files: it loads
+rosbags, ruamel.yaml and apsw (about 5 MB resident), which a training run needs only once it
+writes its trajectory (docs/decisions/029-peak-memory.md).
 """
 from __future__ import annotations
 
@@ -12,7 +16,6 @@ import numpy as np
 from evo.core import metrics, sync
 from evo.core.geometry import GeometryException, umeyama_alignment
 from evo.core.trajectory import PoseTrajectory3D
-from evo.tools import file_interface
 
 ALIGNMENTS = ("se3", "sim3", "none")
 # ATE "reason" of a run whose poses are the ground truth itself
@@ -47,6 +50,8 @@ def write_tum(path: str | Path, timestamps: np.ndarray, c2w: np.ndarray) -> None
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
+    from evo.tools import file_interface
+
     file_interface.write_tum_trajectory_file(str(tmp), _trajectory(timestamps, c2w))
     tmp.replace(path)
 
@@ -82,6 +87,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """A TUM trajectory file -> (timestamps [M], c2w [M,4,4]); an empty file gives M = 0."""
     if Path(path).stat().st_size == 0:
         return np.zeros(0), np.zeros((0, 4, 4))
+    from evo.tools import file_interface
+
     traj = file_interface.read_tum_trajectory_file(str(path))
     return np.asarray(traj.timestamps, np.float64), np.stack(traj.poses_se3).astype(np.float64)
 

@@ -1,7 +1,9 @@
-"""Photometric loss terms: L1, D-SSIM (fused C++ kernel on the CPU, kornia elsewhere) and the Scaffold-GS volume regularizer."""
+"""Photometric loss terms: L1, D-SSIM (fused C++ kernel on the CPU, kornia elsewhere) and the Scaffold-GS volume regularizer.
+
+kornia is imported only where its blur runs (not on the CPU): importing it costs about 19 MB of
+resident memory, a fifth of issue 40's margin (docs/decisions/029-peak-memory.md)."""
 from __future__ import annotations
 
-import kornia
 import torch
 
 from segs.raster import fused_ssim, fused_ssim_available
@@ -28,9 +30,12 @@ def ssim(render: torch.Tensor, gt: torch.Tensor, window: int = 11) -> torch.Tens
     CPU in float32 the fused C++ kernel of segs.raster computes the same in one pass each way
     (about 6x faster than kornia at 640x480).
     """
-    kernel = kornia.filters.get_gaussian_kernel1d(window, 1.5, device=render.device, dtype=render.dtype)
+    kernel = gaussian_window(window, 1.5, render)
     if fused_ssim_available(render.permute(2, 0, 1), window):
-        return fused_ssim(render.permute(2, 0, 1), gt.permute(2, 0, 1), kernel.flatten(), _C1, _C2)
+        return fused_ssim(render.permute(2, 0, 1), gt.permute(2, 0, 1), kernel, _C1, _C2)
+    import kornia
+
+    kernel = kernel[None]  # [1, taps]
     r, g = to_bchw(render), to_bchw(gt)
     c = r.shape[1]
     blur = lambda x: kornia.filters.filter2d_separable(x, kernel, kernel, border_type="reflect")  # noqa: E731
@@ -43,6 +48,15 @@ def ssim(render: torch.Tensor, gt: torch.Tensor, window: int = 11) -> torch.Tens
     num = (2.0 * mu_rg + _C1) * (2.0 * cov + _C2)
     den = (mu_rr + mu_gg + _C1) * (var_r + var_g + _C2)
     return (num / (den + 1e-12)).mean()
+
+
+def gaussian_window(taps: int, sigma: float, like: torch.Tensor) -> torch.Tensor:
+    """[taps] normalised Gaussian weights centred on the middle tap (odd taps), on the device and in
+    the dtype of ``like``: kornia.filters.get_gaussian_kernel1d's arithmetic, so the same bits (the
+    training loss is unchanged; torch.signal.windows.gaussian differs in the last bit)."""
+    x = torch.arange(taps, dtype=like.dtype, device=like.device) - taps // 2
+    w = torch.exp(-(x**2) / (2 * sigma**2))
+    return w / w.sum()
 
 
 def volume(scales: torch.Tensor) -> torch.Tensor:
