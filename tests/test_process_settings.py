@@ -46,7 +46,7 @@ print(json.dumps(out))
 
 def _env(**extra: str) -> dict:
     """This environment without the settings (conftest applied them to this process)."""
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "SEGS_MALLOC")}
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "SEGS_MALLOC")}
     return {**env, "PYTHONPATH": str(ROOT / "src"), **extra}
 
 
@@ -67,6 +67,37 @@ def test_segs_malloc_default_opts_out_of_the_allocator_setting():
     code = "from segs import process_settings as p; p.apply(); print(p.malloc_setting())"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(SEGS_MALLOC="default"), timeout=120)
     assert res.returncode == 0 and res.stdout.split() == ["default"], res.stderr[-2000:]
+
+
+SPIN_PROBE = """
+import os
+from segs import process_settings as p
+p.idle_share = lambda seconds=0.1: {idle}
+p.apply()
+print(os.environ.get("OMP_WAIT_POLICY"), os.environ.get("GOMP_SPINCOUNT"))
+"""
+
+
+@pytest.mark.parametrize("idle, preset, expected", [
+    (0.9, {}, "PASSIVE 1000"),  # idle CPUs: a short spin before sleeping
+    (0.5, {}, "PASSIVE None"),  # busy: threads sleep at once
+    (None, {}, "PASSIVE None"),  # /proc/stat unreadable
+    (0.9, {"GOMP_SPINCOUNT": "7"}, "PASSIVE 7"),  # the user's spin count is kept
+    (0.9, {"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE None"),  # the user's policy: nothing added
+])  # fmt: skip
+def test_a_short_spin_only_when_the_cpus_are_idle_and_nothing_is_set(idle, preset, expected):
+    code = SPIN_PROBE.format(idle=idle)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(**preset), timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == expected
+
+
+@pytest.mark.skipif(not Path("/proc/stat").is_file(), reason="/proc/stat")
+def test_idle_share_is_a_share_of_the_cpus_time():
+    from segs.process_settings import idle_share
+
+    share = idle_share(0.05)
+    assert share is not None and 0.0 <= share <= 1.0
 
 
 def _provenance(result: Path) -> dict:

@@ -90,6 +90,7 @@ def threads() -> dict:
         "opencv": cv2.getNumThreads() if cv2 is not None else None,
         "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
         "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "GOMP_SPINCOUNT": os.environ.get("GOMP_SPINCOUNT"),
     }
 
 
