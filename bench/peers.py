@@ -19,8 +19,9 @@ budget (minutes, ascending) one OpenSplat run and one segs run, in alternating o
   budget (a 200-step pilot first, then the rate of the previous budget's run), in a child process
   timed from its launch; the clock stops while test views are scored (at the smaller budgets, for
   the chart, and at the end), and the run stops at the budget.
-Each program runs under /usr/bin/time -v (peak RSS, CPU %), with OMP_NUM_THREADS=2,
-OMP_WAIT_POLICY=PASSIVE. Before the budgets, `render_native` is checked against OpenSplat's own
+Each program runs under /usr/bin/time -v (peak RSS, CPU %), with OMP_NUM_THREADS=2 and its own
+OpenMP wait policy (OpenSplat: libgomp's default; segs: decision 033's, chosen as it starts;
+OMP_WAIT_POLICY / GOMP_SPINCOUNT are removed from their environment). Before the budgets, `render_native` is checked against OpenSplat's own
 `--val-render` image of a training view (60 full-size steps): the PSNR between them is recorded.
 
 Output: outputs/bench/peers.json (every run and point), docs/performance/peers.png (PSNR against
@@ -51,7 +52,8 @@ import _opensplat as peer  # noqa: E402
 
 SEVEN_SCENES = _harness.SEVEN_SCENES
 BEGIN, END = "<!-- peers:begin -->", "<!-- peers:end -->"
-THREADS_ENV = {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE"}
+THREADS_ENV = {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
+WAIT_VARS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")  # each program keeps its own default
 PEER_PILOT_ITERS, SEGS_PILOT_STEPS = 100, 200
 PEER_PHASE_STEPS = 3000  # its --resolution-schedule default: 1/4 size, then 1/2 from 3,000, full from 6,000
 PEER_PHASE_SLOWDOWN = 0.4  # rate of a resolution phase not seen yet, relative to the one before
@@ -185,7 +187,7 @@ def check_renderer(binary: str, split: dict, work: Path) -> float:
     first = split["train"][0]
     cmd = [binary, split["input"], "-n", "60", "--num-downscales", "0", "--keep-crs", "-o", str(out / "splat.ply"),
            "--val-render", str(out / "val"), "--val-image", f"{first:05d}.png"]  # fmt: skip
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env={**os.environ, **THREADS_ENV})
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, env=child_env())
     theirs = cv2.cvtColor(cv2.imread(str(out / "val" / "60.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
     h, w = theirs.shape[:2]
     cam = {"fx": split["camera"]["fx"], "fy": split["camera"]["fy"], "cx": (w - 1) / 2, "cy": (h - 1) / 2, "width": w, "height": h}
@@ -250,10 +252,15 @@ def segs_steps(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> i
 
 
 # -- runs -----------------------------------------------------------------------------------------
+def child_env() -> dict:
+    """The environment of both methods' processes: two threads each, no wait policy of this script's."""
+    return {**{k: v for k, v in os.environ.items() if k not in WAIT_VARS}, **THREADS_ENV}
+
+
 def run_peer(binary: str, split: dict, budget_s: float, runs: list[dict], out: Path, source) -> dict:
     """One OpenSplat run sized for budget_s, scored (final PLY and snapshots)."""
     n = peer_iterations(budget_s, runs, PILOT_RATE_FACTOR if len(runs) == 1 else 1.0)
-    res = peer.run(binary, Path(split["input"]), n, out, {**os.environ, **THREADS_ENV}, save_every=max(n // PEER_SNAPSHOTS, 1))
+    res = peer.run(binary, Path(split["input"]), n, out, child_env(), save_every=max(n // PEER_SNAPSHOTS, 1))
     points = []
     for step, ply in sorted(res["snapshots"].items()):
         points.append({"seconds": peer.seconds_at(res["steps"], step), "steps": step, **score_peer(ply, split, source, False)})
@@ -271,7 +278,7 @@ def run_segs(split_path: Path, budget_s: float, max_steps: int, marks: list[floa
            "--budget-s", str(budget_s), "--max-steps", str(max_steps), "--launch", str(time.time()), "--part", str(part),
            "--marks", *[str(m) for m in marks]]  # fmt: skip
     with open(out / "log.txt", "w") as log:
-        subprocess.run(cmd, check=True, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **THREADS_ENV})
+        subprocess.run(cmd, check=True, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=child_env())
     return {"method": "segs", **json.loads(part.read_text()), **peer.gnu_time(out / "time.txt")}
 
 
@@ -301,7 +308,8 @@ def segs_child(args) -> None:
     Path(args.part).write_text(json.dumps({
         "budget_s": args.budget_s, "max_steps": args.max_steps, "steps": int(trainer.global_step), "startup_s": clock.first_step_s,
         "train_s": clock.seconds, "eval_s": sum(p["eval_s"] for p in clock.points), "points": clock.points,
-        "schedule_done": trainer.global_step / args.max_steps}))  # fmt: skip
+        "schedule_done": trainer.global_step / args.max_steps,
+        "omp": {k: os.environ.get(k) for k in WAIT_VARS}}))  # fmt: skip
 
 
 def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: int, record: dict, save, tries: int = TRIES) -> None:
@@ -315,7 +323,7 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
     record["datasets"].append(entry)
     print(f"peers: {name}: {entry['train_views']} training / {entry['test_views']} test views, {split['points']} points; "
           f"render_native vs OpenSplat's --val-render {entry['renderer_check_db']:.1f} dB", flush=True)
-    peer_runs = [peer.run(binary, Path(split["input"]), PEER_PILOT_ITERS, work / name / "opensplat_pilot", {**os.environ, **THREADS_ENV})]
+    peer_runs = [peer.run(binary, Path(split["input"]), PEER_PILOT_ITERS, work / name / "opensplat_pilot", child_env())]
     segs_runs = [run_segs(split_path, 600.0, SEGS_PILOT_STEPS, [], work / name / "segs_pilot")]
     for i, minutes in enumerate(sorted(budgets)):
         b = minutes * 60.0
