@@ -20,7 +20,7 @@ Schedule length: the LR / densification schedules scale with trainer.max_steps, 
 this order: --max-steps (every curve); with --pace-from JSON the steps the same curve reached in
 that earlier output; else from a --warmup-s second warm-up of the same run (discarded):
 steps/s of the warm-up's second half x (budget - feeding seconds). The warm-up sees the map
-before it grows, so on a growing map it overestimates (docs/performance.md "Time to quality":
+before it grows, so on a growing map it overestimates (decision 020:
 neither 7-Scenes schedule was done at 10 minutes); the JSON records max_steps, the steps reached
 and schedule_done per curve. A run that reaches max_steps before the budget ends there.
 
