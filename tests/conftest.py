@@ -5,6 +5,7 @@ long end-to-end runs (marked where they are defined) and every test that reads t
 data in ../shared/data (marked here, by the fixture that finds it). CI runs both."""
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -97,6 +98,15 @@ def orb_v2_state(fe) -> dict:
     finally:
         fe.map.lock = lock
     return {"format": "segs.orb.v2", "blob": blob}
+
+
+def load_bench(name: str, module: str | None = None):
+    """A bench/ script as a module (bench/ is not a package): load_bench("mono_forward")."""
+    path = Path(__file__).resolve().parents[1] / "bench" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(module or f"{name.lstrip('_')}_bench", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def instances_in(value, where: str = "state") -> list[str]:

@@ -2,21 +2,19 @@
 trajectory (the real frames are not needed)."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import load_bench
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("ate_decompose_bench", ROOT / "bench" / "ate_decompose.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("ate_decompose")
 
 
 def _track(n: int, angles: np.ndarray | None = None) -> np.ndarray:

@@ -2,7 +2,6 @@
 trajectories in a 7-Scenes-style folder; the real frames are not needed)."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import cv2
@@ -10,14 +9,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import load_bench
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("ate_diagnostics_bench", ROOT / "bench" / "ate_diagnostics.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("ate_diagnostics")
 
 
 def _depth_track(n: int, rng: np.random.Generator) -> np.ndarray:

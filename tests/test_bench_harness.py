@@ -3,7 +3,6 @@ the JSON writer every bench script uses (logic only: no timing is asserted)."""
 from __future__ import annotations
 
 import ast
-import importlib.util
 import json
 import os
 import subprocess
@@ -13,6 +12,7 @@ from pathlib import Path
 import pytest
 
 import segs
+from conftest import load_bench
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
@@ -24,10 +24,7 @@ NO_RECORD = {"ate_diagnostics.py", "calibrate_7scenes.py", "place_recognition.py
 
 @pytest.fixture(scope="module")
 def harness():
-    spec = importlib.util.spec_from_file_location("bench_harness", BENCH / "_harness.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("_harness", "bench_harness")
 
 
 def test_shared_data_is_beside_the_checkout_unless_the_environment_says_where(tmp_path):

@@ -1,16 +1,15 @@
 """bench/headline.py: the README's headline table comes from run folders and their provenance."""
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
+from conftest import load_bench
+
 ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("headline", ROOT / "bench" / "headline.py")
-headline = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(headline)
+headline = load_bench("headline", "headline")
 
 PROV = {"sensor": "rgbd", "overrides": ["+experiment=x", "seed=1"], "git_commit": "0123456789abcdef" * 2 + "01234567",
         "git_dirty": True, "machine": {"cpu": "AMD EPYC", "cores": 2}}

@@ -2,9 +2,9 @@
 ../shared/data/kitti_odometry_51, skipped where absent): it keeps its scale."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
+from conftest import load_bench
 from segs.config import slam_frontend
 from segs.data.kitti import KittiSequence
 from segs.pipeline.sources import run_sequence
@@ -17,10 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _two_view_odometry():
     """bench/mono_forward.py's essential-matrix odometry with unit steps (the issue's baseline)."""
-    spec = importlib.util.spec_from_file_location("mono_forward_bench", ROOT / "bench" / "mono_forward.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.two_view_odometry
+    return load_bench("mono_forward").two_view_odometry
 
 
 def test_monocular_keeps_its_scale_on_a_forward_drive(kitti_root):

@@ -2,12 +2,12 @@
 and the two-view essential-matrix baseline of bench/mono_forward.py."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import load_bench
 from segs.config import slam_frontend
 from segs.data.synthetic import SyntheticSequence
 from segs.pipeline.sources import run_sequence
@@ -118,10 +118,7 @@ def test_monocular_local_bundle_adjustment_holds_the_scale():
 
 
 def _bench_module():
-    spec = importlib.util.spec_from_file_location("mono_forward_bench", ROOT / "bench" / "mono_forward.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("mono_forward")
 
 
 def test_two_view_baseline_recovers_each_step():

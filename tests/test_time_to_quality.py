@@ -2,7 +2,6 @@
 tiny synthetic scene with a budget of seconds (logic only: no timing is asserted)."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import time
@@ -10,17 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from conftest import TINY
+from conftest import TINY, load_bench
 
 ROOT = Path(__file__).resolve().parents[1]
 EVAL_SLEEP_S = 0.5  # added to every evaluation: a clock that counted it would overrun the fit's wall time
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("time_to_quality_bench", ROOT / "bench" / "time_to_quality.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("time_to_quality")
 
 
 def _slow(score):

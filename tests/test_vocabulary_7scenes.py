@@ -2,12 +2,12 @@
 on: database retrieval (the protocol of bench/place_recognition.py) and relocalization."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import load_bench
 from segs.config import slam_frontend
 from segs.data.frame import Frame
 from segs.slam.geometry import inv_se3
@@ -18,10 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("place_recognition", ROOT / "bench" / "place_recognition.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("place_recognition", "place_recognition")
 
 
 @pytest.fixture(scope="module")
