@@ -100,7 +100,7 @@ def test_afme_beats_no_afme_on_test_views_under_an_exposure_change(tiny_cfg, tmp
     assert psnr["linear"] > psnr["none"] + 1.0, psnr
 
 
-def test_the_logger_gets_the_step_scalars_every_log_every_n_steps(tiny_cfg):
+def test_the_logger_gets_the_step_scalars_every_log_every_n_steps(tiny_cfg, tmp_path):
     """The mapper logs on the steps the logger writes (not every step): each write carries the
     loss, train/psnr and the anchors, at steps log_every_n_steps - 1, 2 * n - 1, ..."""
     from lightning.pytorch.loggers import Logger
@@ -120,12 +120,16 @@ def test_the_logger_gets_the_step_scalars_every_log_every_n_steps(tiny_cfg):
         def log_hyperparams(self, params, *args, **kwargs):
             pass
 
-    cfg = tiny_cfg("trainer.max_steps=40", "trainer.log_every_n_steps=10", "callbacks.periodic_checkpoint.every_n_steps=0",
-                   "eval.enabled=false")  # fmt: skip
-    t = build(cfg)
-    rec = Recorder()
-    t.trainer.loggers = [rec]
-    t.trainer.fit(t.module, step_batches(40))
-    steps = [s for s, m in rec.rows if "loss" in m]
-    assert steps == [9, 19, 29, 39]
-    assert all({"train/psnr", "model/anchors", "train/iteration_ms"} <= set(m) for _, m in rec.rows if "loss" in m)
+    def logged_steps(every: int) -> list[tuple[int, dict]]:
+        cfg = tiny_cfg("trainer.max_steps=40", f"trainer.log_every_n_steps={every}",
+                       "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false", out=tmp_path / str(every))  # fmt: skip
+        t = build(cfg)
+        rec = Recorder()
+        t.trainer.loggers = [rec]
+        t.trainer.fit(t.module, step_batches(40))
+        return [(s, m) for s, m in rec.rows if "loss" in m]
+
+    rows = logged_steps(10)
+    assert [s for s, _ in rows] == [9, 19, 29, 39]
+    assert all({"train/psnr", "model/anchors", "train/iteration_ms"} <= set(m) for _, m in rows)
+    assert logged_steps(0) == []  # 0: Lightning writes nothing, and the step does not divide by it

@@ -173,7 +173,8 @@ class GaussianMapperModule(L.LightningModule):
         edits = self.model.maintain(step + 1, opt)
         self.iteration_ms.append((time.perf_counter() - t0) * 1000.0)
         self.loss_history.append(float(terms["total"].detach()))
-        if (step + 1) % self.trainer.log_every_n_steps == 0:
+        n = self.trainer.log_every_n_steps  # Lightning's rule: 0 never writes
+        if n > 0 and ((step + 1) % n == 0 or self.trainer.should_stop):
             self._log_step(terms, out.image.detach(), gt, edits, factor)
         return terms["total"].detach()
 
