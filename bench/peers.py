@@ -2,6 +2,7 @@
 
     python bench/peers.py --opensplat PATH [--datasets sample 7scenes] [--budgets MIN ...] [--write docs/performance.md]
     python bench/peers.py --report outputs/bench/peers.json [--write docs/performance.md]   # table and chart again
+    python bench/peers.py --report A.json B.json ...   # several runs' JSONs in one table (a later run's budget supersedes)
 
 Both methods get the same training views, poses, initial points and test views, and both are
 scored by one function with the project's PSNR / SSIM (segs.modules.metrics) on the full frames.
@@ -33,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -398,11 +400,36 @@ def rows(entry: dict) -> list[str]:
     return out
 
 
+def merge(records: list[dict]) -> dict:
+    """One record from the JSONs of several runs of this script, in order: each dataset's runs
+    appended, so that a later run at the same budget supersedes an earlier one (`_final`); every
+    run's command and machine kept ("parts") for the report's head. A dataset exported differently
+    in two of them (views, initial points) cannot share a table: SystemExit naming it."""
+    parts, datasets = [], {}
+    for rec in records:
+        parts += rec.get("parts") or [{"command": rec["command"], "machine": rec["machine"]}]
+        for e in rec["datasets"]:
+            first = datasets.setdefault(e["dataset"], {**e, "runs": []})
+            same = ("train_views", "test_views", "points", "crop")
+            if any(first.get(k) != e.get(k) for k in same):
+                raise SystemExit(f"error: dataset {e['dataset']!r} differs between the merged records ({', '.join(same)})")
+            first["runs"] += e["runs"]
+    return {"parts": parts, "machine": parts[-1]["machine"], "command": "; ".join(p["command"] for p in parts),
+            "datasets": list(datasets.values())}
+
+
+def _part_head(part: dict) -> str:
+    """`command` (commit, date; machine; OpenSplat version; load) of one run of this script."""
+    m, command = part["machine"], re.sub(r" --(chart|work) \S+", "", part["command"])
+    return (f"`{command}` (commit {m['commit']}, {m['date']}; {m['cpu']}, {m['cores']} cores; OpenSplat {m['opensplat']}; "
+            f"load average before {m['load_before']}, after {m.get('load_after', '-')})")
+
+
 def report(record: dict) -> str:
-    """The machine and command, each dataset's views and renderer check, and one table."""
-    m, entries = record["machine"], record["datasets"]
-    head = (f"`{record['command']}` (commit {m['commit']}, {m['date']}; {m['cpu']}, {m['cores']} cores; OpenSplat {m['opensplat']}; "
-            f"load average before {m['load_before']}, after {m.get('load_after', '-')}). "  # fmt: skip
+    """The machines and commands, each dataset's views and renderer check, and one table."""
+    entries = record["datasets"]
+    parts = record.get("parts") or [{"command": record["command"], "machine": record["machine"]}]
+    head = ("; ".join(_part_head(p) for p in parts) + ". "
             + "; ".join(f"{e['dataset']}: {e['train_views']} training / {e['test_views']} test views, {e['points']:,} initial points, "
                         f"render_native against its --val-render {e['renderer_check_db']:.1f} dB" for e in entries) + ".")
     table = ["| data, budget | OpenSplat PSNR / SSIM (std.) | s, iterations | Gaussians, MB | peak RSS MB | segs PSNR / SSIM | "
@@ -478,7 +505,8 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "peers.json")
     p.add_argument("--chart", type=Path, default=ROOT / "docs" / "performance" / "peers.png")
     p.add_argument("--write", type=Path, default=None, help="a markdown file with the peers markers (docs/performance.md)")
-    p.add_argument("--report", type=Path, default=None, help="only print the tables and redraw the chart of this output JSON")
+    p.add_argument("--report", type=Path, nargs="+", default=None,
+                   help="only print the tables and redraw the chart of these output JSONs (merged in order)")
     p.add_argument("--segs-run", help=argparse.SUPPRESS)
     for hidden in ("--budget-s", "--launch"):
         p.add_argument(hidden, type=float, help=argparse.SUPPRESS)
@@ -489,7 +517,10 @@ def main() -> None:
     if args.segs_run:
         return segs_child(args)
     if args.report:
-        record = json.loads(args.report.read_text())
+        missing = [str(p) for p in args.report if not p.is_file()]
+        if missing:
+            raise SystemExit(f"error: no such report JSON: {missing[0]}")
+        record = merge([json.loads(p.read_text()) for p in args.report])
     else:
         record = measure(args)
     chart(record, args.chart)

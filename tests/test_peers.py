@@ -135,17 +135,18 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     assert not peers.fits({"method": "opensplat", "points": [{"seconds": 60.0}]}, 120.0)
 
 
-def _record() -> dict:
-    def run(method, minutes, psnr, seconds, rss):
-        point = {"seconds": seconds, "steps": 900, "psnr": psnr, "ssim": 0.85, "psnr_std": psnr - 2, "gaussians": 12000,
-                 "anchors": 1200, "active": 6000.0, "model_mb": 1.5}  # fmt: skip
-        early = {**point, "seconds": seconds / 2, "psnr": psnr - 1}
-        return {"budget_min": minutes, "budget_s": minutes * 60.0, "method": method, "max_steps": 1000, "schedule_done": 1.0,
-                "peak_rss_mb": rss, "points": [early, point]}  # fmt: skip
+def _run(method: str, minutes: float, psnr: float, seconds: float, rss: float) -> dict:
+    point = {"seconds": seconds, "steps": 900, "psnr": psnr, "ssim": 0.85, "psnr_std": psnr - 2, "gaussians": 12000,
+             "anchors": 1200, "active": 6000.0, "model_mb": 1.5}  # fmt: skip
+    early = {**point, "seconds": seconds / 2, "psnr": psnr - 1}
+    return {"budget_min": minutes, "budget_s": minutes * 60.0, "method": method, "max_steps": 1000, "schedule_done": 1.0,
+            "peak_rss_mb": rss, "points": [early, point]}  # fmt: skip
 
+
+def _record() -> dict:
     entry = {"dataset": "sample", "note": "test", "train_views": 43, "test_views": 15, "points": 5000, "renderer_check_db": 52.9,
-             "runs": [run("opensplat", 1, 22.0, 58.0, 300.0), run("segs", 1, 23.5, 59.0, 540.0), run("opensplat", 2, 23.0, 150.0, 320.0),
-                      run("segs", 2, 24.0, 118.0, 560.0)]}  # fmt: skip
+             "runs": [_run("opensplat", 1, 22.0, 58.0, 300.0), _run("segs", 1, 23.5, 59.0, 540.0), _run("opensplat", 2, 23.0, 150.0, 320.0),
+                      _run("segs", 2, 24.0, 118.0, 560.0)]}  # fmt: skip
     machine = {"commit": "abc1234", "date": "2026-11-26", "cpu": "test", "cores": 2, "opensplat": "1.1.5", "load_before": "0.0"}
     return {"machine": machine, "command": "python bench/peers.py", "datasets": [entry]}
 
@@ -169,6 +170,37 @@ def test_report_table_chart_and_the_doc_markers(peers, tmp_path):
     bare.write_text("no markers\n")
     with pytest.raises(SystemExit, match="markers"):
         peers.write_between_markers(bare, "x")
+
+
+def test_reports_of_several_runs_share_one_table(peers, tmp_path):
+    first, later = _record(), _record()
+    later["command"] = "python bench/peers.py --datasets sample --budgets 2 8 --chart /tmp/elsewhere.png"
+    later["machine"] = {**later["machine"], "commit": "def5678"}
+    later["datasets"][0]["runs"] = [_run("segs", 2, 25.0, 115.0, 570.0), _run("opensplat", 8, 24.0, 470.0, 400.0),
+                                    _run("segs", 8, 26.5, 460.0, 600.0)]  # fmt: skip
+    merged = peers.merge([first, later])
+    text = peers.report(merged)
+    rows = [ln for ln in text.splitlines() if ln.startswith("| sample, ")]
+    assert [r.split(" |")[0] for r in rows] == ["| sample, 1 min", "| sample, 2 min", "| sample, 8 min"]
+    assert rows[0].endswith("| **+1.50** |")  # from the first run only
+    assert "| 25.00 / 0.850 |" in rows[1] and rows[1].endswith("| **+2.00** |")  # the later segs run supersedes
+    assert rows[2].endswith("| **+2.50** |")
+    assert "commit abc1234" in text and "commit def5678" in text and "--chart" not in text
+    assert len(first["datasets"][0]["runs"]) == 4  # the inputs are not changed
+    assert peers.report(peers.merge([first])) == peers.report(first)
+    other = _record()
+    other["datasets"][0]["test_views"] = 14
+    with pytest.raises(SystemExit, match="'sample' differs"):
+        peers.merge([first, other])
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps(first))
+    b.write_text(json.dumps(later))
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--report", str(a), str(b), "--chart", str(tmp_path / "c.png")],
+                         capture_output=True, text=True)  # fmt: skip
+    assert res.returncode == 0 and "| sample, 8 min" in res.stdout and (tmp_path / "c.png").is_file()
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--report", str(a), str(tmp_path / "none.json")],
+                         capture_output=True, text=True)  # fmt: skip
+    assert res.returncode != 0 and res.stderr.strip() == f"error: no such report JSON: {tmp_path / 'none.json'}"
 
 
 def test_a_missing_binary_is_one_line_and_exit_2(tmp_path):
