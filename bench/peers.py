@@ -57,6 +57,7 @@ BEGIN, END = "<!-- peers:begin -->", "<!-- peers:end -->"
 THREADS_ENV = {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
 WAIT_VARS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")  # each program keeps its own default
 PEER_PILOT_ITERS, SEGS_PILOT_STEPS = 100, 200
+EXPORT_KEYS = ("train_views", "test_views", "points", "crop")  # what runs joined by --report must share
 PEER_PHASE_STEPS = 3000  # its --resolution-schedule default: 1/4 size, then 1/2 from 3,000, full from 6,000
 PEER_PHASE_SLOWDOWN = 0.4  # rate of a resolution phase not seen yet, relative to the one before
 PEER_SNAPSHOTS = 5  # --save-every = iterations // this (chart points)
@@ -410,9 +411,8 @@ def merge(records: list[dict]) -> dict:
         parts += rec.get("parts") or [{"command": rec["command"], "machine": rec["machine"]}]
         for e in rec["datasets"]:
             first = datasets.setdefault(e["dataset"], {**e, "runs": []})
-            same = ("train_views", "test_views", "points", "crop")
-            if any(first.get(k) != e.get(k) for k in same):
-                raise SystemExit(f"error: dataset {e['dataset']!r} differs between the merged records ({', '.join(same)})")
+            if any(first.get(k) != e.get(k) for k in EXPORT_KEYS):
+                raise SystemExit(f"error: dataset {e['dataset']!r} differs between the merged records ({', '.join(EXPORT_KEYS)})")
             first["runs"] += e["runs"]
     return {"parts": parts, "machine": parts[-1]["machine"], "command": "; ".join(p["command"] for p in parts),
             "datasets": list(datasets.values())}
