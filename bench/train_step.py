@@ -16,6 +16,11 @@ outputs/bench/train_step.json.
     python bench/train_step.py --experiment seven_scenes_rgbd --extra data.frames=[100,250]   # 640x480
     python bench/train_step.py --downscale 4   # the timed iterations at 1/4 size (coarse-to-fine's first phase)
     python bench/train_step.py --models segs --variant model.k=5   # the defaults and a variant, timed alternately
+    python bench/train_step.py --backend cuda --device cuda --profile   # wall vs device time per step (GPU)
+
+With --profile the phases are not synchronised: the timed steps run as in segs.train under
+torch.profiler, and the table gives wall time per step against the device's kernel time per step;
+their difference is the time the device waits for the host (Python, launches, syncs).
 """
 from __future__ import annotations
 
@@ -85,6 +90,65 @@ class StepTimes(L.Callback):
             trainer.should_stop = True
 
 
+class DeviceBusy(L.Callback):
+    """Wall seconds of `iters` steps after `warmup` (first batch start to last batch end, the loop
+    between them included) and the device kernels' total time over them (torch.profiler); stops
+    the trainer after them. Result in `row`: wall / device ms per step, device share, top host ops."""
+
+    def __init__(self, warmup: int, iters: int, cuda: bool):
+        self.warmup, self.iters, self.cuda, self.steps, self.row = warmup, iters, cuda, 0, {}
+        self._prof, self._t0 = None, 0.0
+
+    def _sync(self) -> None:
+        if self.cuda:
+            torch.cuda.synchronize()
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if self.steps == self.warmup:
+            from torch.profiler import ProfilerActivity, profile
+            acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if self.cuda else [])
+            self._sync()
+            self._prof = profile(activities=acts)
+            self._prof.__enter__()
+            self._t0 = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.steps += 1
+        if self.steps < self.warmup + self.iters:
+            return
+        self._sync()
+        wall = (time.perf_counter() - self._t0) / self.iters
+        self._prof.__exit__(None, None, None)
+        ev = self._prof.key_averages()
+        device = sum(e.self_device_time_total for e in ev) / 1e6 / self.iters if self.cuda else None
+        top = sorted(ev, key=lambda e: e.self_cpu_time_total, reverse=True)[:12]
+        self.row = {"wall": wall, "device": device, "device_share": None if device is None else device / wall,
+                    "kernels_per_step": sum(e.count for e in ev if e.device_type.name == "CUDA") / self.iters if self.cuda else None,
+                    "top_host_ops_ms": {e.key: e.self_cpu_time_total / 1e3 / self.iters for e in top}}
+        trainer.should_stop = True
+        self._prof = None
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if self._prof is not None:  # the schedule ended inside the profiled steps: no row
+            self._prof.__exit__(None, None, None)
+            self._prof = None
+
+
+def profiled(schedule: int, warmup: int, iters: int, backend: str, device: str, experiment: str, extra=(), factor: int = 1) -> dict:
+    """DeviceBusy's row for SEGS (+ extra) after `warmup` steps of a `schedule`-step run."""
+    overrides = [f"+experiment={experiment}", "slam=known_poses", f"raster.backend={backend}",
+                 f"trainer.accelerator={'gpu' if device.startswith('cuda') else 'cpu'}", *extra]
+    with tempfile.TemporaryDirectory(prefix="train_step_profile_") as out:
+        cfg, _seq, module, _bridge, trainer = _harness.build_training(overrides, schedule, Path(out), [])
+        module.resolution_factor = lambda step: factor
+        busy = DeviceBusy(warmup, iters, device.startswith("cuda"))
+        trainer.callbacks.append(busy)
+        _harness.fit(cfg, module, trainer)
+    if not busy.row:
+        raise SystemExit(f"bench/train_step.py: {busy.steps} steps ran, {warmup + iters} needed (raise --schedule)")
+    return {**busy.row, "anchors": int(module.model.counts()["anchors"])}
+
+
 def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu",
           experiment: str = "sample", extra=(), factor: int = 1) -> dict:
     """Medians of the timed steps of one model (module doc), with its anchors and image size."""
@@ -134,8 +198,19 @@ def main() -> None:
     p.add_argument("--downscale", type=int, default=1, help="time the iterations at 1/N of the image size (warm-up at full size)")
     p.add_argument("--variant", nargs="+", default=None, help="overrides of a SEGS variant, timed in runs alternated with the defaults")
     p.add_argument("--repeats", type=int, default=1, help="runs of each with --variant")
+    p.add_argument("--profile", action="store_true", help="wall vs device kernel time per step (SEGS; no phase syncs)")
     p.add_argument("--out", default=str(_harness.OUTPUTS / "train_step.json"))
     args = p.parse_args()
+    if args.profile:
+        row = profiled(args.schedule, args.warmup, args.iters, args.backend, args.device, args.experiment, args.extra, args.downscale)
+        dev = "n/a (no CUDA)" if row["device"] is None else f"{1000 * row['device']:.1f} ms ({100 * row['device_share']:.0f} % of wall, " \
+            f"{row['kernels_per_step']:.0f} kernels)"
+        print(f"SEGS, {row['anchors']} anchors, {args.iters} steps after {args.warmup} of {args.schedule}: "
+              f"wall {1000 * row['wall']:.1f} ms per step, device kernels {dev}")
+        for k, v in row["top_host_ops_ms"].items():
+            print(f"  host {v:7.2f} ms/step  {k}")
+        _harness.write_json(args.out, {**_harness.record(), "args": vars(args), "profile": row})
+        return
     if args.variant:
         res = interleaved(args.schedule, args.warmup, args.iters, args.backend, args.experiment, args.extra, args.variant,
                           args.downscale, args.repeats)
