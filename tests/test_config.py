@@ -60,7 +60,8 @@ def test_sample_data_and_frontends_instantiate(tmp_path):
 
 
 @pytest.mark.parametrize("key,value", [("trainer.max_steps", 0), ("data.downscale", 0.5), ("seed", -1),
-                                       ("raster.backend", "opengl"), ("callbacks.slam_bridge.feed_until", 2.0)])  # fmt: skip
+                                       ("raster.backend", "opengl"), ("callbacks.slam_bridge.feed_until", 2.0),
+                                       ("trainer.max_time", "10min")])  # fmt: skip
 def test_out_of_range_values_are_rejected_naming_the_key(key, value, tmp_path):
     cfg = compose([f"{key}={value}"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

@@ -32,6 +32,14 @@ def test_short_training_lowers_loss_and_writes_every_output(tiny_cfg, tmp_path):
     assert metrics["psnr"] == m["psnr"]
 
 
+def test_a_wall_clock_limit_stops_before_the_schedule_and_still_evaluates(tiny_cfg, capsys):
+    cfg = tiny_cfg("trainer.max_steps=100000", "trainer.max_time=00:00:00:02", "callbacks.periodic_checkpoint.every_n_steps=0")
+    m = run(cfg)
+    assert m["status"] == "finished" and m["test_views"] > 0 and m["psnr"] is not None
+    assert m["scheduled_iterations"] == 100000 and 0 < m["iterations"] < 100000
+    assert f"{m['iterations']} of 100000 scheduled iterations" in capsys.readouterr().out
+
+
 def test_loss_decreases(tiny_cfg):
     
     from segs.train import build, step_batches

@@ -5,6 +5,7 @@ import contextlib
 import inspect
 import logging
 import math
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,6 +74,8 @@ SLAM_MODES = ("interleaved", "process", "live")
 
 _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("trainer.max_steps", lambda v: isinstance(v, int) and v > 0, "an integer > 0"),
+    ("trainer.max_time", lambda v: v is None or bool(re.fullmatch(r"\d+:\d{1,2}:\d{1,2}:\d{1,2}", str(v))),
+     "null or a duration DD:HH:MM:SS"),
     ("trainer.precision", lambda v: str(v) in ("32", "32-true"), "32 (the rasterizers and the mapper work in float32)"),
     ("seed", lambda v: isinstance(v, int) and 0 <= v < 2**32, "an integer in [0, 2^32)"),
     ("ckpt_path", lambda v: v is None or isinstance(v, str), "null or a checkpoint file"),

@@ -80,7 +80,9 @@ def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: 
 def run_summary(module: GaussianMapper, sequence, run: RunState, timing: dict) -> dict:
     """The numbers of a run that need no rendering: time, tracking, keyframes, model size.
 
-    timing: {"steps", "fit_s", "wall_s"} summed over every session of the run (resumes included).
+    timing: {"steps", "fit_s", "wall_s"} summed over every session of the run (resumes included),
+    and "scheduled_steps" (trainer.max_steps: the schedules' length; more than "steps" when
+    trainer.max_time stopped the run first).
     """
     trajectory = run.trajectory()
     lost = run.lost_frames()
@@ -90,6 +92,7 @@ def run_summary(module: GaussianMapper, sequence, run: RunState, timing: dict) -
     summary = {
         "sequence": getattr(sequence, "name", ""),
         "iterations": steps,
+        "scheduled_iterations": timing.get("scheduled_steps"),
         "wall_time_s": timing.get("wall_s"),
         "mapping_time_s": timing.get("fit_s"),
         "iterations_per_s": steps / timing["fit_s"] if timing.get("fit_s") else None,

@@ -116,8 +116,8 @@ class TrainingRun:
         watch = (lambda where: guard.check(trainer, where, save=False)) if guard is not None else None
         with self.interrupt.in_phase("now"):
             self.bridge.complete_sequence()
-            timing = {"steps": trainer.global_step, "fit_s": record.fit_seconds(), "wall_s": record.wall_seconds(),
-                      "sessions": record.sessions}  # fmt: skip
+            timing = {"steps": trainer.global_step, "scheduled_steps": self.cfg.trainer.max_steps, "fit_s": record.fit_seconds(),
+                      "wall_s": record.wall_seconds(), "sessions": record.sessions}  # fmt: skip
             evaluation = eval_config(self.cfg.eval)
             if not evaluation.enabled:
                 metrics = write_not_evaluated(self.module, self.sequence, self.state, self.out, timing, notes, self.provenance())
@@ -215,6 +215,12 @@ def _ate_line(m: dict) -> str:
     return f"ATE RMSE {value} over {m['frames_tracked']}/{m['frames']} tracked frames"
 
 
+def _of_scheduled(m: dict) -> str:
+    """' of N' when the run stopped before its schedule's N steps (trainer.max_time), else ''."""
+    n = m.get("scheduled_iterations")
+    return f" of {n} scheduled" if n and m["iterations"] < n else ""
+
+
 def _print_summary(out: Path, m: dict) -> None:
     print(
         f"\nsegs: results in {out}\n"
@@ -224,7 +230,7 @@ def _print_summary(out: Path, m: dict) -> None:
            f"({m['psnr_jpeg_on_lossless_views']:.2f} dB against the JPEGs, which score {m['psnr_jpeg_vs_lossless']:.2f} dB)\n"
            if m.get("lossless_views") else "")
         + f"  {_ate_line(m)}\n"
-        f"  {m['iterations']} iterations in {m['mapping_time_s']:.1f} s, {m['gaussians']} Gaussians, "
+        f"  {m['iterations']}{_of_scheduled(m)} iterations in {m['mapping_time_s']:.1f} s, {m['gaussians']} Gaussians, "
         f"{m['anchors']} anchors, {m['model_mb']:.2f} MB\n"
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")
         + (f"  {m['checkpoint_note']}\n" if m.get("checkpoint_note") else "")
