@@ -69,19 +69,19 @@ def test_a_coarse_render_matches_the_block_mean_of_the_full_render():
 
 
 def test_bad_schedule_values_are_config_errors():
-    base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15}
+    base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "min_schedule_steps": 0}
     with pytest.raises(ConfigError, match="mapping.num_downscales"):
         mapping_config({**base, "num_downscales": -1, "downscale_phase": 0.1})
     with pytest.raises(ConfigError, match="mapping.downscale_phase"):
         mapping_config({**base, "num_downscales": 2, "downscale_phase": 0.6})
+    with pytest.raises(ConfigError, match="mapping.min_schedule_steps"):
+        mapping_config({**base, "num_downscales": 2, "downscale_phase": 0.25, "min_schedule_steps": -1})
 
 
-def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
-    
+def _resolutions(cfg, steps: int) -> list[tuple[int, int]]:
+    """(width, height) of every training step's render in a run of `steps` steps."""
     from segs.train import build, step_batches
 
-    cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25",
-                   "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")  # fmt: skip
     t = build(cfg)
     module, trainer = t.module, t.trainer
     seen = []
@@ -92,6 +92,30 @@ def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
         return render(view, step)
 
     module.render = spy
-    trainer.fit(module, step_batches(40))
+    trainer.fit(module, step_batches(steps))
+    assert np.isfinite(module.loss_history).all() and len(module.loss_history) == steps
+    return seen
+
+
+@pytest.mark.parametrize("overrides,total", [(("trainer.max_steps=40",), 80), (("trainer.max_steps=120",), 120),
+                                             (("trainer.max_steps=40", "mapping.num_downscales=0"), 40),
+                                             (("trainer.max_steps=40", "mapping.min_schedule_steps=0"), 40)])  # fmt: skip
+def test_the_schedule_is_the_run_or_the_coarse_to_fine_minimum(overrides, total):
+    from segs.config import compose
+
+    cfg = compose(["mapping.num_downscales=2", "mapping.min_schedule_steps=80", *overrides])
+    assert cfg.model.total_steps == total
+
+
+def test_a_run_shorter_than_the_minimum_schedule_stops_inside_its_phases(tiny_cfg):
+    cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25", "mapping.min_schedule_steps=80",
+                   "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")  # fmt: skip
+    assert cfg.model.total_steps == 80
+    assert _resolutions(cfg, 40) == [(24, 18)] * 20 + [(48, 36)] * 20  # 1/4 for 80/4 steps, 1/2 for the next 20: no full size
+
+
+def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
+    cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25", "mapping.min_schedule_steps=0",
+                   "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")  # fmt: skip
+    seen = _resolutions(cfg, 40)
     assert seen[:10] == [(24, 18)] * 10 and seen[10:20] == [(48, 36)] * 10 and seen[20:] == [(96, 72)] * 20
-    assert np.isfinite(module.loss_history).all() and len(module.loss_history) == 40

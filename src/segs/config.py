@@ -26,6 +26,16 @@ if not OmegaConf.has_resolver("segs_root"):
     OmegaConf.register_new_resolver("segs_root", lambda: str(REPO_ROOT))
 
 
+def schedule_steps(max_steps: int, num_downscales: int, min_steps: int) -> int:
+    """The schedules' length (model.total_steps): the run's trainer.max_steps, or
+    mapping.min_schedule_steps when the run is coarse-to-fine (num_downscales > 0) and shorter."""
+    return max(int(max_steps), int(min_steps)) if int(num_downscales) > 0 else int(max_steps)
+
+
+if not OmegaConf.has_resolver("segs_schedule"):
+    OmegaConf.register_new_resolver("segs_schedule", schedule_steps)
+
+
 def compose(overrides: list[str] | None = None, config_name: str = "train", output_dir: str | None = None) -> DictConfig:
     """Compose the config as `python -m segs.train OVERRIDES` would (for tests and notebooks).
 

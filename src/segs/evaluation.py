@@ -81,8 +81,9 @@ def run_summary(module: GaussianMapper, sequence, run: RunState, timing: dict) -
     """The numbers of a run that need no rendering: time, tracking, keyframes, model size.
 
     timing: {"steps", "fit_s", "wall_s"} summed over every session of the run (resumes included),
-    and "scheduled_steps" (trainer.max_steps: the schedules' length; more than "steps" when
-    trainer.max_time stopped the run first).
+    and "scheduled_steps" (model.total_steps: the schedules' length; more than "steps" when
+    trainer.max_time stopped the run first, or a coarse-to-fine run is shorter than
+    mapping.min_schedule_steps).
     """
     trajectory = run.trajectory()
     lost = run.lost_frames()

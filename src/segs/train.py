@@ -116,7 +116,7 @@ class TrainingRun:
         watch = (lambda where: guard.check(trainer, where, save=False)) if guard is not None else None
         with self.interrupt.in_phase("now"):
             self.bridge.complete_sequence()
-            timing = {"steps": trainer.global_step, "scheduled_steps": self.cfg.trainer.max_steps, "fit_s": record.fit_seconds(),
+            timing = {"steps": trainer.global_step, "scheduled_steps": self.module.model.total_steps, "fit_s": record.fit_seconds(),
                       "wall_s": record.wall_seconds(), "sessions": record.sessions}  # fmt: skip
             evaluation = eval_config(self.cfg.eval)
             if not evaluation.enabled:
@@ -216,7 +216,8 @@ def _ate_line(m: dict) -> str:
 
 
 def _of_scheduled(m: dict) -> str:
-    """' of N' when the run stopped before its schedule's N steps (trainer.max_time), else ''."""
+    """' of N' when the run stopped before its schedule's N steps (trainer.max_time, or a
+    coarse-to-fine run shorter than mapping.min_schedule_steps), else ''."""
     n = m.get("scheduled_iterations")
     return f" of {n} scheduled" if n and m["iterations"] < n else ""
 

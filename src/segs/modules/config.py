@@ -120,7 +120,8 @@ class MappingConfig:
     min_scene_extent: float
     adam_eps: float
     num_downscales: int  # coarse-to-fine: first steps at 1/2^n of the image size (0 = off)
-    downscale_phase: float  # fraction of the run each coarser level lasts
+    downscale_phase: float  # fraction of the schedule each coarser level lasts
+    min_schedule_steps: int  # coarse-to-fine: schedules sized for at least this many steps (0 = the run's)
 
 
 @dataclass
@@ -185,6 +186,7 @@ def mapping_config(node) -> MappingConfig:
     _check("config key mapping.num_downscales", 0 <= cfg.num_downscales <= 4, cfg.num_downscales, "an integer 0..4")
     _check("config key mapping.downscale_phase", 0 < cfg.downscale_phase and cfg.num_downscales * cfg.downscale_phase <= 1,
            cfg.downscale_phase, "a fraction > 0 with num_downscales * downscale_phase <= 1")  # fmt: skip
+    _check("config key mapping.min_schedule_steps", cfg.min_schedule_steps >= 0, cfg.min_schedule_steps, "an integer >= 0")
     return cfg
 
 

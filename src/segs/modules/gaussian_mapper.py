@@ -179,8 +179,9 @@ class GaussianMapperModule(L.LightningModule):
         return terms["total"].detach()
 
     def resolution_factor(self, step: int) -> int:
-        """Image size divisor of training step `step` (1 = full size; coarse-to-fine schedule)."""
-        total = self.trainer.max_steps if self._trainer is not None else -1
+        """Image size divisor of training step `step` (1 = full size; coarse-to-fine schedule over
+        the model's schedule, model.total_steps: trainer.max_steps or mapping.min_schedule_steps)."""
+        total = self.model.total_steps if self._trainer is not None else -1
         return downscale_factor(step, total, self.num_downscales, self.downscale_phase)
 
     def _log_step(self, terms: dict, image: torch.Tensor, gt: torch.Tensor, edits: dict, factor: int) -> None:

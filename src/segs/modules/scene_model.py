@@ -86,6 +86,9 @@ class SceneModel(nn.Module, abc.ABC):
     """
 
     scene_extent: float = 1.0
+    # the schedules' length in steps (model.total_steps): learning rates, densification windows,
+    # and the mapper's coarse-to-fine phases
+    total_steps: int
     # whether loss() reads the keyframes' depth; without it the mapper keeps no depth image
     uses_depth: bool = False
     # state-dict names of checkpoints written before the PrimitiveRows store: old -> new, a name
