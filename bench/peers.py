@@ -230,7 +230,8 @@ def peer_seconds(n: int, startup: float, rates: dict[int, float]) -> float:
 
 def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:
     """Iterations for AIM x budget: the step the latest run printed at that time when it ran that
-    long, else the largest n whose predicted time fits (peer_seconds, binary search); rate_factor
+    long, else the largest n whose predicted time fits (peer_seconds, binary search) and never
+    fewer than a run that ended before that time (then its steps at its own pace); rate_factor
     scales the measured rates (below 1 after the pilot alone: its first steps are its fastest)."""
     target = AIM * budget_s
     log = runs[-1]["steps"]
@@ -242,6 +243,9 @@ def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0)
     while lo < hi:
         mid = (lo + hi + 1) // 2
         lo, hi = (mid, hi) if peer_seconds(mid, startup, rates) <= target else (lo, mid - 1)
+    end_s, end_n = log[-1]
+    if lo <= end_n:  # the latest run ended early with end_n steps: more, at its own pace
+        lo = int(end_n * (target - startup) / max(end_s - startup, 1e-6))
     return lo
 
 

@@ -128,6 +128,11 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     assert peers.peer_iterations(20.0, [{"steps": log}]) == next(s for t, s in log if t >= peers.AIM * 20.0)
     long = peers.peer_iterations(600.0, [{"steps": log}])  # crosses into the slower phases
     assert peers.peer_phase(long) == 2 and peers.peer_seconds(long, startup, rates) <= peers.AIM * 600.0
+    # a run that ended early although its rates predicted more time: never fewer steps than it ran
+    slow = [[2.0 + s / 20.0, s] for s in range(1, 1001)]  # an earlier run at 20 it/s gives the rates
+    short = [[2.0, 1]] + [[2.0 + 54.0 * k / 28, 80 * k] for k in range(1, 29)]  # then 2,240 steps by 56 s
+    n_more = peers.peer_iterations(60.0, [{"steps": slow}, {"steps": short}])
+    assert n_more == int(2240 * (peers.AIM * 60.0 - 2.0) / (56.0 - 2.0)) > 2240
     # segs: the previous run's steps per second after its startup
     assert peers.segs_steps(120.0, [{"steps": 500, "train_s": 60.0, "startup_s": 10.0}]) == int(10.0 * 110.0 * peers.AIM)
     assert peers.fits({"method": "segs", "schedule_done": 1.0, "points": [{"seconds": 110.0}]}, 120.0)
