@@ -134,10 +134,15 @@ class DeviceBusy(L.Callback):
             self._prof = None
 
 
+def _overrides(experiment: str, backend: str, device: str, extra=()) -> list[str]:
+    """The run's overrides: the experiment with known poses, on this backend and device, + extra."""
+    return [f"+experiment={experiment}", "slam=known_poses", f"raster.backend={backend}",
+            f"trainer.accelerator={'gpu' if device.startswith('cuda') else 'cpu'}", *extra]
+
+
 def profiled(schedule: int, warmup: int, iters: int, backend: str, device: str, experiment: str, extra=(), factor: int = 1) -> dict:
     """DeviceBusy's row for SEGS (+ extra) after `warmup` steps of a `schedule`-step run."""
-    overrides = [f"+experiment={experiment}", "slam=known_poses", f"raster.backend={backend}",
-                 f"trainer.accelerator={'gpu' if device.startswith('cuda') else 'cpu'}", *extra]
+    overrides = _overrides(experiment, backend, device, extra)
     with tempfile.TemporaryDirectory(prefix="train_step_profile_") as out:
         cfg, _seq, module, _bridge, trainer = _harness.build_training(overrides, schedule, Path(out), [])
         module.resolution_factor = lambda step: factor
@@ -152,9 +157,7 @@ def profiled(schedule: int, warmup: int, iters: int, backend: str, device: str, 
 def bench(model: str, schedule: int, warmup: int, iters: int, backend: str, device: str = "cpu",
           experiment: str = "sample", extra=(), factor: int = 1) -> dict:
     """Medians of the timed steps of one model (module doc), with its anchors and image size."""
-    overrides = [f"+experiment={experiment}", "slam=known_poses", f"raster.backend={backend}",
-                 f"trainer.accelerator={'gpu' if device.startswith('cuda') else 'cpu'}"]
-    overrides += (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []) + list(extra)
+    overrides = _overrides(experiment, backend, device, (["+ablation=plain_3dgs"] if model == "plain_3dgs" else []) + list(extra))
     with tempfile.TemporaryDirectory(prefix=f"train_step_{model}_") as out:
         cfg, _seq, module, _bridge, trainer = _harness.build_training(overrides, schedule, Path(out), [])
         times = StepTimes(module, warmup, iters, factor)
