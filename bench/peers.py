@@ -315,7 +315,7 @@ def segs_child(args) -> None:
     Path(args.part).write_text(json.dumps({
         "budget_s": args.budget_s, "max_steps": args.max_steps, "steps": int(trainer.global_step), "startup_s": clock.first_step_s,
         "train_s": clock.seconds, "eval_s": sum(p["eval_s"] for p in clock.points), "points": clock.points,
-        "schedule_done": trainer.global_step / args.max_steps,
+        "schedule_done": trainer.global_step / args.max_steps, "scheduled_steps": int(module.model.total_steps),
         "omp": {k: os.environ.get(k) for k in WAIT_VARS}}))  # fmt: skip
 
 
@@ -395,8 +395,8 @@ def rows(entry: dict) -> list[str]:
         else:
             cells += ["-"] * 4
         if s:
-            q = s["points"][-1]
-            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f}", f"{q['seconds']:.0f}{_miss(s)}, {q['steps']:,} ({s['max_steps']:,})",
+            q, schedule = s["points"][-1], s.get("scheduled_steps", s["max_steps"])
+            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f}", f"{q['seconds']:.0f}{_miss(s)}, {q['steps']:,} ({schedule:,})",
                       f"{_k(q['anchors'])}, {_k(q['gaussians'])} ({_k(q['active'])}), {q['model_mb']:.1f}", f"{s['peak_rss_mb']:.0f}"]
         else:
             cells += ["-"] * 4
@@ -439,8 +439,10 @@ def report(record: dict) -> str:
     table = ["| data, budget | OpenSplat PSNR / SSIM (std.) | s, iterations | Gaussians, MB | peak RSS MB | segs PSNR / SSIM | "
              "s, steps (schedule) | anchors, Gaussians (active), MB | peak RSS MB | segs - OpenSplat dB |", "|" + "---|" * 10]
     table += [row for e in entries for row in rows(e)]
-    note = ("s: wall seconds from launch; * outside -15 / +8 % of the budget (segs: or stopped before its schedule's end) after "
-            "the tries; std.: a correct 3D-GS render of OpenSplat's PLY; active: drawn with opacity > 0.005, mean over the test views.")
+    note = ("s: wall seconds from launch; * outside -15 / +8 % of the budget (segs: or stopped before its steps' end) after "
+            "the tries; (schedule): the steps segs's schedules are sized for (model.total_steps: the run's steps, or "
+            "mapping.min_schedule_steps when more; records without it give the run's steps); "
+            "std.: a correct 3D-GS render of OpenSplat's PLY; active: drawn with opacity > 0.005, mean over the test views.")
     return "\n".join([head, "", *table, "", note])
 
 

@@ -164,6 +164,8 @@ def test_report_table_chart_and_the_doc_markers(peers, tmp_path):
     assert "22.00 / 0.850 (20.00)" in rows[0] and "| 23.50 / 0.850 | 59, 900 (1,000) | 1.2k, 12.0k (6.0k), 1.5 | 540 |" in rows[0]
     assert "| 22.00 / 0.850 (20.00) | 58, 900 | 12.0k, 1.5 | 300 |" in rows[0] and "52.9 dB" in text
     assert "| 150 *, 900 |" in rows[1]  # 150 s for a 2-minute budget: marked
+    record["datasets"][0]["runs"][1]["scheduled_steps"] = 6750  # schedules sized beyond the run (mapping.min_schedule_steps)
+    assert "| 59, 900 (6,750) |" in peers.report(record)
     png = tmp_path / "peers.png"
     peers.chart(record, png)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
