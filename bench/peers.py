@@ -357,7 +357,8 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
 
 def fits(run: dict, budget_s: float) -> bool:
     """Whether a run used its budget: it ended within [FIT_LOW, FIT_HIGH] x budget and, for segs,
-    its schedule was done (a run stopped by the budget has not decayed its learning rates)."""
+    it ran its max_steps ("schedule_done": the share of them run; a run stopped by the budget did
+    not end as sized, and its schedules, scheduled_steps, may be longer still)."""
     seconds = run["points"][-1]["seconds"]
     done = run["method"] == "opensplat" or run["schedule_done"] >= 1.0
     return done and FIT_LOW * budget_s <= seconds <= FIT_HIGH * budget_s
