@@ -197,3 +197,20 @@ def test_the_mapper_keeps_a_views_depth_only_when_its_loss_reads_it(model, lambd
     module.add_keyframes([view])
     reads = bool(lambda_depth)
     assert module.uses_depth == reads and (module.views[0].depth is not None) == reads
+
+
+def test_the_training_device_copy_of_a_view_is_kept_until_its_pose_is_replaced():
+    node = model_node("segs", k=2, feature_dim=4, hidden=4)
+    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
+                              "min_schedule_steps": 0})
+    raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
+    module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)
+    view = TrainingView(kf_id=3, frame_index=1, timestamp=1.0, image=torch.zeros(24, 32, 3, dtype=torch.uint8),
+                        w2c=torch.eye(4), camera=CAMERA)  # fmt: skip
+    module.add_keyframes([view])
+    first = module._on_device(module.views[3])
+    assert module._on_device(module.views[3]) is first  # kept: no copy per step
+    module.update_poses({3: torch.tensor(_pose(0.2), dtype=torch.float32)})
+    moved = module._on_device(module.views[3])
+    assert moved is not first and moved.w2c[0, 3] == torch.tensor(0.2)
+    assert moved.image.device == module.device and moved.kf_id == 3

@@ -89,3 +89,16 @@ def test_half_weights_count_every_masked_entry_once():
         for kind, ratio in [("high", 0.4), ("low", 0.1)]:
             full = (fpr.highpass_mask if kind == "high" else fpr.lowpass_mask)(h, w, ratio)
             assert float(fpr.half_weights(kind, h, w, ratio, "cpu").sum()) == float(full.sum())
+
+
+def test_depth_l1_is_the_mean_over_valid_pixels_without_indexing():
+    from segs.modules.losses import depth_l1
+
+    g = torch.Generator().manual_seed(0)
+    depth = torch.rand(12, 16, generator=g, requires_grad=True)
+    gt = torch.rand(12, 16, generator=g) * (torch.rand(12, 16, generator=g) > 0.4)
+    valid = gt > 0
+    expected = (depth[valid] - gt[valid]).abs().mean()
+    assert torch.allclose(depth_l1(depth, gt), expected)
+    none = depth_l1(depth, torch.zeros(12, 16))
+    assert float(none) == 0.0 and none.requires_grad

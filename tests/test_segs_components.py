@@ -226,3 +226,46 @@ def test_segs_model_sepm_batches_and_loop_correction():
     assert torch.allclose(model.field.xyz[2:], before[2:] @ T[:3, :3].T)
     scales = torch.exp(model.field.rows["log_scales"].detach())
     assert torch.allclose(scales[2:], 2 * scales_before[2:]) and torch.equal(scales[:2], scales_before[:2])
+
+
+def test_record_adds_the_screen_gradient_of_drawn_gaussians_only():
+    from segs.modules.anchors import DecodeInfo
+
+    field, _opt, dens = _densifier_setup()  # 6 anchors, k = 2
+    field.rows.grad_accum[:] = 0.0
+    field.rows.grad_visits[:] = 0.0
+    info = DecodeInfo(visible=torch.tensor([1, 4]), keep=torch.tensor([0, 1, 3]), opacity=torch.ones(2, 2))
+    grad = torch.tensor([[0.1, 0.0], [0.3, 0.4], [0.0, 0.2]])
+    radii = torch.tensor([2, 0, 5], dtype=torch.int32)  # the second was not drawn
+    dens.record(field, info, grad, radii, width=20, height=10)
+    expected = torch.zeros(6, 2)
+    expected[1, 0] = 0.1 * 10  # slot 2 (anchor 1, offset 0): |(0.1 * 20/2, 0)|
+    expected[4, 1] = 0.2 * 5  # slot 9 (anchor 4, offset 1): |(0, 0.2 * 10/2)|
+    assert torch.allclose(field.rows.grad_accum, expected)
+    assert field.rows.grad_visits.sum() == 2 and field.rows.grad_visits[1, 0] == 1 and field.rows.grad_visits[4, 1] == 1
+
+
+def test_rotation_to_quaternion_on_the_device_path_agrees_with_scipys():
+    from scipy.spatial.transform import Rotation
+
+    from segs.modules.geometry import rotmat_to_quat, rotmat_to_quat_on_device
+
+    mats = [torch.tensor(Rotation.random(random_state=i).as_matrix(), dtype=torch.float32) for i in range(50)]
+    mats.append(torch.diag(torch.tensor([1.0, -1.0, -1.0])))  # w = 0: q and -q both canonical
+    for R in mats:
+        a, b = rotmat_to_quat(R), rotmat_to_quat_on_device(R)
+        assert b[0] >= 0 and min((a - b).abs().max(), (a + b).abs().max() if a[0] < 1e-6 else 1.0) < 1e-5
+
+
+def test_afme_keeps_a_training_views_pose_vector_until_its_pose_object_changes():
+    from segs.modules.afme import pose_vector
+
+    enc = AppearanceEncoder("linear", dim=4)
+    w2c = torch.eye(4)
+    first = enc._pose(w2c, kf_id=7)
+    assert enc._pose(w2c, kf_id=7) is first  # the same pose object: no conversion
+    moved = torch.eye(4)
+    moved[0, 3] = 0.5
+    assert torch.equal(enc._pose(moved, kf_id=7), pose_vector(moved))  # a replaced pose: converted again
+    assert torch.equal(enc(moved, 7), enc.embed(pose_vector(moved)))
+    assert enc._pose(w2c, kf_id=None) is not first  # a novel view is not kept

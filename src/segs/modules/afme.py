@@ -41,6 +41,7 @@ class AppearanceEncoder(nn.Module):
         if kind not in KINDS:
             raise ValueError(f"model.appearance.kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.dim = kind, (0 if kind == "none" else dim)
+        self._poses: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # kf_id -> (w2c, pose vector)
         self.scene_extent = 1.0
         if kind == "linear":
             self.net = nn.Linear(7, dim)
@@ -73,7 +74,18 @@ class AppearanceEncoder(nn.Module):
             return None
         if self.kind == "ae":
             return self.table.weight[self._row(w2c, kf_id)]
-        return self.embed(pose_vector(w2c))
+        return self.embed(self._pose(w2c, kf_id))
+
+    def _pose(self, w2c: torch.Tensor, kf_id: int | None) -> torch.Tensor:
+        """pose_vector(w2c) [7], kept per training view while its pose tensor is the same object
+        (the mapper replaces it when the pose changes): a training step converts no rotation."""
+        hit = self._poses.get(kf_id) if kf_id is not None else None
+        if hit is not None and hit[0] is w2c:
+            return hit[1]
+        pose = pose_vector(w2c)
+        if kf_id is not None:
+            self._poses[kf_id] = (w2c, pose)
+        return pose
 
     def embed(self, pose: torch.Tensor) -> torch.Tensor:
         """AfME on a pose vector [7] = [t, q wxyz] (canonicalized here) -> [A]."""

@@ -65,11 +65,14 @@ class AnchorGrowth:
         if means2d_grad is None or vis.numel() == 0:
             return
         slots = info.slots(field.k)
+        # every rendered slot is added, the undrawn ones (radius 0) as zeros: masked values, not
+        # t[drawn], so that no data-dependent shape makes a GPU wait (the same sums)
         drawn = radii > 0
-        ndc = means2d_grad.new_tensor([width / 2.0, height / 2.0])
-        norm = (means2d_grad[drawn] * ndc).norm(dim=-1).to(rows.grad_accum)
-        rows.grad_accum.view(-1).index_add_(0, slots[drawn], norm)
-        rows.grad_visits.view(-1).index_add_(0, slots[drawn], torch.ones_like(norm))
+        g = means2d_grad
+        norm = torch.stack([g[:, 0] * (width / 2.0), g[:, 1] * (height / 2.0)], -1).norm(dim=-1).to(rows.grad_accum)
+        norm = torch.where(drawn, norm, torch.zeros_like(norm))
+        rows.grad_accum.view(-1).index_add_(0, slots, norm)
+        rows.grad_visits.view(-1).index_add_(0, slots, drawn.to(norm))
 
     @torch.no_grad()
     def adjust(self, field: AnchorField, optimizer, interval: int, voxel_size: float, max_anchors: int,

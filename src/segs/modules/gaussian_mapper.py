@@ -28,6 +28,9 @@ from segs.raster import rasterize
 log = logging.getLogger(__name__)
 
 
+LOSS_READ = 100  # training losses are read back to the host in batches: on a GPU each read is a sync
+
+
 class GaussianMapperModule(L.LightningModule):
     """Trains a SceneModel (SEGS anchors or plain 3D-GS) on the training views of the bridge.
 
@@ -46,7 +49,12 @@ class GaussianMapperModule(L.LightningModule):
         self.adam_eps = mapping.adam_eps
         self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
         self.iteration_ms: list[float] = []
-        self.loss_history: list[float] = []
+        self._losses: list[float] = []
+        self._pending_losses: list[torch.Tensor] = []  # on the device, read back every LOSS_READ steps
+        # per kf_id: (the host pose object it was made from, the view on the training device)
+        self._device_views: dict[int, tuple[torch.Tensor, TrainingView]] = {}
+        self._device_K: dict = {}  # (Camera, device) -> K [3,3] on the training device
+        self.register_buffer("background", torch.tensor(raster.background, dtype=torch.float32), persistent=False)
         self.raster_backend: str | None = None  # the backend that rendered last (provenance)
         self.restored_step = 0  # the loaded checkpoint's step: renders outside a trainer (segs.view) use it
 
@@ -127,17 +135,44 @@ class GaussianMapperModule(L.LightningModule):
         radius = (centers - centers.mean(0)).norm(dim=-1).max()
         self.model.scene_extent = max(float(radius) * 1.1, self.min_scene_extent)
 
+    @property
+    def loss_history(self) -> list[float]:
+        """The total loss of every training step of this process, in order."""
+        self._read_losses()
+        return self._losses
+
+    def _read_losses(self) -> None:
+        if self._pending_losses:
+            self._losses.extend(torch.stack(self._pending_losses).tolist())
+            self._pending_losses = []
+
+    def _on_device(self, kf: TrainingView) -> TrainingView:
+        """kf with its image, depth and pose on the training device, kept per keyframe (on a GPU a
+        host-to-device copy inside the step waits for the device; on the CPU the entry holds the
+        same tensors) and made again when the keyframe's pose is replaced (update_poses)."""
+        hit = self._device_views.get(kf.kf_id)
+        if hit is None or hit[0] is not kf.w2c or hit[1].image.device != self.device:
+            to = lambda t: None if t is None else t.to(self.device)  # noqa: E731
+            hit = self._device_views[kf.kf_id] = (kf.w2c, dataclasses.replace(kf, image=to(kf.image), w2c=to(kf.w2c), depth=to(kf.depth)))
+        return hit[1]
+
+    def _K(self, view: View) -> torch.Tensor:
+        """view.K [3,3] on the training device, made once per camera."""
+        key = (view.camera, self.device)
+        if key not in self._device_K:
+            self._device_K[key] = view.K.to(self.device)
+        return self._device_K[key]
+
     def render(self, view: View, step: int | None = None):
         """Decode and rasterize one view; returns (rasterizer output, Decoded)."""
         if step is None:
             step = self.global_step if self._trainer is not None else self.restored_step
         decoded = self.model.decode(view, step)
         r = self.raster
-        bg = torch.tensor(r.background, dtype=torch.float32, device=self.device)
         out = rasterize(
             decoded.means, decoded.quats, decoded.scales, decoded.opacities, decoded.colors,
-            view.w2c.to(self.device), view.K.to(self.device), view.camera.width, view.camera.height,
-            background=bg, near=r.near, far=r.far, backend=r.backend,
+            view.w2c.to(self.device), self._K(view), view.camera.width, view.camera.height,
+            background=self.background, near=r.near, far=r.far, backend=r.backend,
         )  # fmt: skip
         self.raster_backend = out.backend
         return out, decoded
@@ -157,7 +192,7 @@ class GaussianMapperModule(L.LightningModule):
         t0 = time.perf_counter()
         opt = self.optimizers(use_pl_optimizer=False)
         step = self.global_step
-        kf = self.views.sample()
+        kf = self._on_device(self.views.sample())
         factor = self.resolution_factor(step)
         view = View(kf.w2c.to(self.device), coarse_camera(kf.camera, factor), kf.kf_id)
         gt = coarse_image(kf.rgb().to(self.device), factor)
@@ -172,7 +207,9 @@ class GaussianMapperModule(L.LightningModule):
         opt.zero_grad(set_to_none=True)
         edits = self.model.maintain(step + 1, opt)
         self.iteration_ms.append((time.perf_counter() - t0) * 1000.0)
-        self.loss_history.append(float(terms["total"].detach()))
+        self._pending_losses.append(terms["total"].detach())
+        if len(self._pending_losses) >= LOSS_READ:
+            self._read_losses()
         n = self.trainer.log_every_n_steps  # Lightning's rule: 0 never writes
         if n > 0 and ((step + 1) % n == 0 or self.trainer.should_stop):
             self._log_step(terms, out.image.detach(), gt, edits, factor)

@@ -74,8 +74,8 @@ def photometric(render: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> 
 
 
 def depth_l1(depth: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:
-    """Mean |depth - gt| over pixels with valid ground truth (> 0); [H,W] each."""
+    """Mean |depth - gt| over pixels with valid ground truth (> 0), 0 where none is; [H,W] each.
+    Masked sums, not depth[valid]: no data-dependent shape, so no device-to-host sync on a GPU."""
     valid = gt_depth > 0
-    if not bool(valid.any()):
-        return depth.sum() * 0.0
-    return (depth[valid] - gt_depth[valid]).abs().mean()
+    err = torch.where(valid, (depth - gt_depth).abs(), torch.zeros_like(depth))
+    return err.sum() / valid.sum().clamp_min(1)

@@ -31,11 +31,21 @@ def _check_tensor(name: str, t, shape: tuple, n_name: str = "N") -> torch.Tensor
     return t
 
 
-def _check_finite(name: str, t: torch.Tensor) -> None:
-    # One float64 reduction (cannot overflow for float32 input): finite iff every entry is.
-    if t.numel() and not math.isfinite(float(t.detach().sum(dtype=torch.float64))):
-        bad = int((~torch.isfinite(t)).sum())
-        raise ValueError(f"{name}: {bad} non-finite value(s) (nan/inf) in {_describe(t)}")
+def _check_finite(tensors: dict[str, torch.Tensor], K: torch.Tensor) -> tuple[float, float]:
+    """Raise for the first tensor holding a nan / inf; returns K's focal lengths (fx, fy).
+
+    One float64 sum per tensor (cannot overflow for float32 input: finite iff every entry is),
+    read back with K's diagonal in ONE device-to-host copy: on a GPU each read is a sync.
+    """
+    names = [n for n, t in tensors.items() if t.numel()]
+    sums = [tensors[n].detach().sum(dtype=torch.float64) for n in names]
+    read = torch.stack(sums + [K[0, 0].detach().double(), K[1, 1].detach().double()]).tolist()
+    for name, total in zip(names, read):
+        if not math.isfinite(total):
+            t = tensors[name]
+            bad = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{name}: {bad} non-finite value(s) (nan/inf) in {_describe(t)}")
+    return read[-2], read[-1]
 
 
 def check_inputs(
@@ -69,16 +79,14 @@ def check_inputs(
             raise ValueError(f"{name}: expected device {means.device} like means, got {_describe(t)}")
         if t.dtype != means.dtype:
             raise ValueError(f"{name}: expected dtype {means.dtype} like means, got {_describe(t)}")
-    for name, t in tensors.items():
-        _check_finite(name, t)
-    _check_camera(K, width, height, near, far)
+    _check_camera(_check_finite(tensors, K), width, height, near, far)
 
 
-def _check_camera(K: torch.Tensor, width, height, near, far) -> None:
+def _check_camera(focal: tuple[float, float], width, height, near, far) -> None:
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise ValueError(f"{name}: expected a positive int, got {v!r}")
-    fx, fy = float(K[0, 0]), float(K[1, 1])
+    fx, fy = focal
     if fx <= 0 or fy <= 0:
         raise ValueError(f"K: expected positive focal lengths K[0,0], K[1,1], got {fx}, {fy}")
     for name, v in (("near", near), ("far", far)):
