@@ -100,12 +100,17 @@ def _pose(x: float) -> np.ndarray:
     return w2c
 
 
-def test_the_mapper_module_implements_the_contract():
+def _mapper_module() -> GaussianMapperModule:
+    """A tiny SEGS mapper on the torch rasterizer."""
     node = model_node("segs", k=2, feature_dim=4, hidden=4)
     mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
                               "min_schedule_steps": 0})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
-    module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)
+    return GaussianMapperModule(build_model(node), mapping, raster, seed=0)
+
+
+def test_the_mapper_module_implements_the_contract():
+    module = _mapper_module()
     assert isinstance(module, GaussianMapper) and isinstance(RecordingMapper(), GaussianMapper)
     assert module.first_view() is None and module.counts() == MapCounts(0, 0, 0, module.counts().params, module.counts().mb)
     view = TrainingView(kf_id=3, frame_index=1, timestamp=1.0, image=torch.zeros(24, 32, 3, dtype=torch.uint8),
@@ -200,11 +205,7 @@ def test_the_mapper_keeps_a_views_depth_only_when_its_loss_reads_it(model, lambd
 
 
 def test_the_training_device_copy_of_a_view_is_kept_until_its_pose_is_replaced():
-    node = model_node("segs", k=2, feature_dim=4, hidden=4)
-    mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
-                              "min_schedule_steps": 0})
-    raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
-    module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)
+    module = _mapper_module()
     view = TrainingView(kf_id=3, frame_index=1, timestamp=1.0, image=torch.zeros(24, 32, 3, dtype=torch.uint8),
                         w2c=torch.eye(4), camera=CAMERA)  # fmt: skip
     module.add_keyframes([view])
