@@ -192,12 +192,12 @@ class GaussianMapperModule(L.LightningModule):
         t0 = time.perf_counter()
         opt = self.optimizers(use_pl_optimizer=False)
         step = self.global_step
-        kf = self._on_device(self.views.sample())
+        kf = self._on_device(self.views.sample())  # image, depth and pose already on the device
         factor = self.resolution_factor(step)
-        view = View(kf.w2c.to(self.device), coarse_camera(kf.camera, factor), kf.kf_id)
-        gt = coarse_image(kf.rgb().to(self.device), factor)
+        view = View(kf.w2c, coarse_camera(kf.camera, factor), kf.kf_id)
+        gt = coarse_image(kf.rgb(), factor)
         out, decoded = self.render(view, step)
-        depth = coarse_depth(kf.depth.to(self.device), factor) if kf.depth is not None and self.uses_depth else None
+        depth = coarse_depth(kf.depth, factor) if kf.depth is not None and self.uses_depth else None
         terms = self.model.loss(out, gt, decoded, step, depth)
         if terms["total"].requires_grad:
             self.manual_backward(terms["total"])

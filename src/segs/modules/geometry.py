@@ -20,24 +20,10 @@ def apply_similarity(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """[3,3] rotation -> [4] wxyz quaternion (w >= 0), in R's dtype and on its device.
-
-    On the CPU scipy's conversion; on a GPU kornia's, which stays on the device: the scipy path's
-    device-to-host copy would stall the training step that calls this (AfME's pose vector).
-    """
-    if R.device.type != "cpu":
-        return rotmat_to_quat_on_device(R)
-    x, y, z, w = Rotation.from_matrix(R.detach().double().numpy()).as_quat()
-    q = torch.tensor([w, x, y, z], dtype=R.dtype)
+    """[3,3] rotation -> [4] wxyz quaternion (w >= 0), in R's dtype and on its device."""
+    x, y, z, w = Rotation.from_matrix(R.detach().cpu().double().numpy()).as_quat()
+    q = torch.tensor([w, x, y, z], dtype=R.dtype, device=R.device)
     return q if q[0] >= 0 else -q
-
-
-def rotmat_to_quat_on_device(R: torch.Tensor) -> torch.Tensor:
-    """rotmat_to_quat without leaving R's device (kornia): [3,3] -> [4] wxyz, w >= 0."""
-    from kornia.geometry.conversions import rotation_matrix_to_quaternion
-
-    q = rotation_matrix_to_quaternion(R.detach())
-    return torch.where(q[0] < 0, -q, q)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
