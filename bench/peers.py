@@ -1,6 +1,6 @@
 """Side by side with the CPU peer OpenSplat: test-view PSNR / SSIM against wall seconds, one script.
 
-    python bench/peers.py --opensplat PATH [--datasets sample 7scenes] [--budgets MIN ...] [--write docs/performance.md]
+    python bench/peers.py --opensplat PATH [--datasets sample 7scenes] [--budgets MIN ...] [--repeats N] [--write docs/performance.md]
     python bench/peers.py --report outputs/bench/peers.json [--write docs/performance.md]   # table and chart again
     python bench/peers.py --report A.json B.json ...   # several runs' JSONs in one table (a later run's budget supersedes)
 
@@ -24,6 +24,10 @@ Each program runs under /usr/bin/time -v (peak RSS, CPU %), with OMP_NUM_THREADS
 OpenMP wait policy (OpenSplat: libgomp's default; segs: decision 033's, chosen as it starts;
 OMP_WAIT_POLICY / GOMP_SPINCOUNT are removed from their environment). Before the budgets, `render_native` is checked against OpenSplat's own
 `--val-render` image of a training view (60 full-size steps): the PSNR between them is recorded.
+
+With --repeats N every budget runs N times (both methods, the order alternated); the table gives
+each method's median run (by final PSNR; its seconds, steps and size), the lowest and highest PSNR
+of the N runs in brackets, the highest peak RSS, and the difference of the medians.
 
 Output: outputs/bench/peers.json (every run and point), docs/performance/peers.png (PSNR against
 wall seconds), the markdown tables on stdout and, with --write, between the markers
@@ -319,8 +323,11 @@ def segs_child(args) -> None:
         "omp": {k: os.environ.get(k) for k in WAIT_VARS}}))  # fmt: skip
 
 
-def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: int, record: dict, save, tries: int = TRIES) -> None:
-    """Export, check the renderer, pilots, then every budget: OpenSplat and segs alternately."""
+def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: int, record: dict, save, tries: int = TRIES,
+                repeats: int = 1) -> None:  # fmt: skip
+    """Export, check the renderer, pilots, then every budget `repeats` times: OpenSplat and segs
+    alternately (the order swapped from one budget or repeat to the next), each run sized from
+    the latest run of its method."""
     split = export(name, work, seed)
     split_path = work / name / "split.json"
     source = view_source(split)
@@ -335,24 +342,26 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
     for i, minutes in enumerate(sorted(budgets)):
         b = minutes * 60.0
         marks = [m * 60.0 for m in budgets if m < minutes]
-        for method in ("opensplat", "segs") if i % 2 == 0 else ("segs", "opensplat"):
-            for attempt in range(tries):
-                out = work / name / f"{method}_{minutes:g}min_{attempt}"
-                if method == "opensplat":
-                    r = run_peer(binary, split, b, peer_runs, out, source)
-                    peer_runs.append(r)
-                else:
-                    steps = segs_steps(b, segs_runs, PILOT_RATE_FACTOR if len(segs_runs) == 1 else 1.0)
-                    r = run_segs(split_path, b, steps, marks, out)
-                    segs_runs.append(r)
-                r["attempt"] = attempt
-                entry["runs"].append({"budget_min": minutes, **r})
-                last = r["points"][-1]
-                print(f"peers: {name} {minutes:g} min {method}: {last['psnr']:.2f} dB / {last['ssim']:.3f} at {last['seconds']:.0f} s, "
-                      f"{last['steps']} steps, {last['gaussians']} Gaussians, peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
-                save()
-                if fits(r, b):
-                    break
+        for rep in range(repeats):
+            for method in ("opensplat", "segs") if (i + rep) % 2 == 0 else ("segs", "opensplat"):
+                runs = peer_runs if method == "opensplat" else segs_runs
+                for attempt in range(tries):
+                    out = work / name / f"{method}_{minutes:g}min_{'' if rep == 0 else f'r{rep}_'}{attempt}"
+                    if method == "opensplat":
+                        r = run_peer(binary, split, b, runs, out, source)
+                    else:
+                        steps = segs_steps(b, runs, PILOT_RATE_FACTOR if len(runs) == 1 else 1.0)
+                        r = run_segs(split_path, b, steps, marks, out)
+                    runs.append(r)
+                    r["attempt"], r["repeat"] = attempt, rep
+                    entry["runs"].append({"budget_min": minutes, **r})
+                    last = r["points"][-1]
+                    print(f"peers: {name} {minutes:g} min {method} (repeat {rep + 1} of {repeats}): {last['psnr']:.2f} dB / "
+                          f"{last['ssim']:.3f} at {last['seconds']:.0f} s, {last['steps']} steps, {last['gaussians']} Gaussians, "
+                          f"peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
+                    save()
+                    if fits(r, b):
+                        break
 
 
 def fits(run: dict, budget_s: float) -> bool:
@@ -365,9 +374,31 @@ def fits(run: dict, budget_s: float) -> bool:
 
 
 # -- report ---------------------------------------------------------------------------------------
+def _finals(entry: dict, method: str, minutes: float) -> list[dict]:
+    """A method's runs at a budget that the table counts: of the latest record that ran it (runs
+    merged from several records carry their "part"), the last attempt of each repeat."""
+    runs = [r for r in entry["runs"] if r["method"] == method and r["budget_min"] == minutes]
+    if not runs:
+        return []
+    part = max(r.get("part", 0) for r in runs)
+    last = {r.get("repeat", 0): r for r in runs if r.get("part", 0) == part}
+    return [last[k] for k in sorted(last)]
+
+
 def _final(entry: dict, method: str, minutes: float) -> dict | None:
-    """The last attempt of a method at a budget."""
-    return next((r for r in reversed(entry["runs"]) if r["method"] == method and r["budget_min"] == minutes), None)
+    """The run of median final PSNR among `_finals` (the lower one of an even count)."""
+    runs = sorted(_finals(entry, method, minutes), key=lambda r: r["points"][-1]["psnr"])
+    return runs[(len(runs) - 1) // 2] if runs else None
+
+
+def _spread(entry: dict, method: str, minutes: float) -> str:
+    """' (lowest-highest PSNR of n runs)' when the budget was repeated, else ''."""
+    psnr = [r["points"][-1]["psnr"] for r in _finals(entry, method, minutes)]
+    return f" [{min(psnr):.2f}-{max(psnr):.2f}, {len(psnr)} runs]" if len(psnr) > 1 else ""
+
+
+def _peak_rss(entry: dict, method: str, minutes: float) -> float:
+    return max(r["peak_rss_mb"] for r in _finals(entry, method, minutes))
 
 
 def _budgets(entry: dict) -> list[float]:
@@ -391,14 +422,17 @@ def rows(entry: dict) -> list[str]:
         cells = [f"{entry['dataset']}, {minutes:g} min"]
         if p:
             q = p["points"][-1]
-            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f} ({q['psnr_std']:.2f})", f"{q['seconds']:.0f}{_miss(p)}, {q['steps']:,}",
-                      f"{_k(q['gaussians'])}, {q['model_mb']:.1f}", f"{p['peak_rss_mb']:.0f}"]  # fmt: skip
+            cells += [f"{q['psnr']:.2f}{_spread(entry, 'opensplat', minutes)} / {q['ssim']:.3f} ({q['psnr_std']:.2f})",
+                      f"{q['seconds']:.0f}{_miss(p)}, {q['steps']:,}", f"{_k(q['gaussians'])}, {q['model_mb']:.1f}",
+                      f"{_peak_rss(entry, 'opensplat', minutes):.0f}"]  # fmt: skip
         else:
             cells += ["-"] * 4
         if s:
             q, schedule = s["points"][-1], s.get("scheduled_steps", s["max_steps"])
-            cells += [f"{q['psnr']:.2f} / {q['ssim']:.3f}", f"{q['seconds']:.0f}{_miss(s)}, {q['steps']:,} ({schedule:,})",
-                      f"{_k(q['anchors'])}, {_k(q['gaussians'])} ({_k(q['active'])}), {q['model_mb']:.1f}", f"{s['peak_rss_mb']:.0f}"]
+            cells += [f"{q['psnr']:.2f}{_spread(entry, 'segs', minutes)} / {q['ssim']:.3f}",
+                      f"{q['seconds']:.0f}{_miss(s)}, {q['steps']:,} ({schedule:,})",
+                      f"{_k(q['anchors'])}, {_k(q['gaussians'])} ({_k(q['active'])}), {q['model_mb']:.1f}",
+                      f"{_peak_rss(entry, 'segs', minutes):.0f}"]
         else:
             cells += ["-"] * 4
         cells.append(f"**{s['points'][-1]['psnr'] - p['points'][-1]['psnr']:+.2f}**" if p and s else "-")
@@ -408,17 +442,18 @@ def rows(entry: dict) -> list[str]:
 
 def merge(records: list[dict]) -> dict:
     """One record from the JSONs of several runs of this script, in order: each dataset's runs
-    appended, so that a later run at the same budget supersedes an earlier one (`_final`); every
+    appended, so that a later record's runs at a budget supersede an earlier one's (`_finals`); every
     run's command and machine kept ("parts") for the report's head. A dataset exported differently
     in two of them (views, initial points) cannot share a table: SystemExit naming it."""
     parts, datasets = [], {}
     for rec in records:
+        offset = len(parts)
         parts += rec.get("parts") or [{"command": rec["command"], "machine": rec["machine"]}]
         for e in rec["datasets"]:
             first = datasets.setdefault(e["dataset"], {**e, "runs": []})
             if any(first.get(k) != e.get(k) for k in EXPORT_KEYS):
                 raise SystemExit(f"error: dataset {e['dataset']!r} differs between the merged records ({', '.join(EXPORT_KEYS)})")
-            first["runs"] += e["runs"]
+            first["runs"] += [{**r, "part": offset + r.get("part", 0)} for r in e["runs"]]
     return {"parts": parts, "machine": parts[-1]["machine"], "command": "; ".join(p["command"] for p in parts),
             "datasets": list(datasets.values())}
 
@@ -443,7 +478,9 @@ def report(record: dict) -> str:
     note = ("s: wall seconds from launch; * outside -15 / +8 % of the budget (segs: or stopped before its steps' end) after "
             "the tries; (schedule): the steps segs's schedules are sized for (model.total_steps: the run's steps, or "
             "mapping.min_schedule_steps when more; records without it give the run's steps); "
-            "std.: a correct 3D-GS render of OpenSplat's PLY; active: drawn with opacity > 0.005, mean over the test views.")
+            "std.: a correct 3D-GS render of OpenSplat's PLY; active: drawn with opacity > 0.005, mean over the test views; "
+            "[a-b, n runs]: a repeated budget's lowest and highest PSNR, the cells beside it the median run's, peak RSS the highest, "
+            "the difference the medians'.")
     return "\n".join([head, "", *table, "", note])
 
 
@@ -508,6 +545,7 @@ def main() -> None:
     p.add_argument("--budgets", type=float, nargs="+", default=None, help="minutes (default: each dataset's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--tries", type=int, default=TRIES, help="runs per method and budget at most (a run missing its budget is sized again)")
+    p.add_argument("--repeats", type=int, default=1, help="runs of each method at each budget (the table: the median run, the range)")
     p.add_argument("--work", type=Path, default=ROOT / "outputs" / "bench" / "peers")
     p.add_argument("--out", type=Path, default=ROOT / "outputs" / "bench" / "peers.json")
     p.add_argument("--chart", type=Path, default=ROOT / "docs" / "performance" / "peers.png")
@@ -559,7 +597,8 @@ def measure(args) -> dict:
         args.out.write_text(json.dumps(record, indent=1))
 
     for name in args.datasets:
-        run_dataset(name, args.opensplat, args.budgets or list(DATASETS[name].budgets), args.work, args.seed, record, save, args.tries)
+        run_dataset(name, args.opensplat, args.budgets or list(DATASETS[name].budgets), args.work, args.seed, record, save, args.tries,
+                    args.repeats)
     return record
 
 

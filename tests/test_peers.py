@@ -230,3 +230,54 @@ def test_end_to_end_with_the_binary(tmp_path):
     methods = {r["method"] for r in entry["runs"]}
     assert methods == {"opensplat", "segs"} and len(entry["runs"]) == 2
     assert all(r["peak_rss_mb"] > 0 and r["points"][-1]["steps"] > 0 and 5 < r["points"][-1]["psnr"] < 60 for r in entry["runs"])
+
+
+def test_a_repeated_budget_gives_the_median_run_and_the_range(peers):
+    record = _record()
+    runs = record["datasets"][0]["runs"]
+    for rep, (psnr_p, psnr_s, rss) in enumerate([(23.1, 24.5, 580.0), (22.9, 24.9, 610.0), (23.4, 24.2, 560.0)]):
+        runs += [{**_run("opensplat", 4, psnr_p, 230.0, 330.0), "repeat": rep},
+                 {**_run("segs", 4, psnr_s, 225.0 + rep, rss), "repeat": rep}]  # fmt: skip
+    refitted = {**_run("segs", 4, 30.0, 300.0, 900.0), "repeat": 1}  # an attempt of repeat 1 before its last: not counted
+    runs.insert(next(i for i, r in enumerate(runs) if r["method"] == "segs" and r.get("repeat") == 1), refitted)
+    row = next(r for r in peers.report(record).splitlines() if r.startswith("| sample, 4 min"))
+    assert "| 23.10 [22.90-23.40, 3 runs] / 0.850 (21.10) |" in row  # the median run and the range
+    assert "| 24.50 [24.20-24.90, 3 runs] / 0.850 | 225, 900 (1,000) |" in row  # the median run's seconds
+    assert row.endswith("| 610 | **+1.40** |")  # the highest peak RSS; the difference of the medians
+    later = _record()
+    later["datasets"][0]["runs"] = [_run("segs", 4, 25.0, 228.0, 600.0)]
+    row = next(r for r in peers.report(peers.merge([record, later])).splitlines() if r.startswith("| sample, 4 min"))
+    assert "| 25.00 / 0.850 |" in row and row.endswith("| 600 | **+1.90** |")  # a later record's single run supersedes the three
+    row = next(r for r in peers.report(peers.merge([later, record])).splitlines() if r.startswith("| sample, 4 min"))
+    assert "| 24.50 [24.20-24.90, 3 runs] / 0.850 |" in row  # and the other way round
+    assert peers.report(peers.merge([peers.merge([later]), record])) == peers.report(peers.merge([later, record]))
+
+
+def test_repeats_alternate_the_order_and_size_each_run_from_the_latest(peers, monkeypatch, tmp_path):
+    calls = []
+
+    def fake_peer(binary, split, budget_s, runs, out, source):
+        calls.append(("opensplat", budget_s, len(runs)))
+        return {**_run("opensplat", budget_s / 60, 22.0, budget_s, 300.0), "steps": [[1.0, 1], [budget_s, 100]]}
+
+    def fake_segs(split_path, budget_s, max_steps, marks, out):
+        calls.append(("segs", budget_s, max_steps))
+        return {**_run("segs", budget_s / 60, 23.0, budget_s * 0.96, 500.0), "steps": 1000, "train_s": budget_s, "startup_s": 2.0}
+
+    split = {"train": [0], "test": [1], "points": 10, "crop": {}, "input": str(tmp_path)}
+    monkeypatch.setattr(peers, "export", lambda name, work, seed: split)
+    monkeypatch.setattr(peers, "view_source", lambda split: None)
+    monkeypatch.setattr(peers, "check_renderer", lambda binary, split, work: 50.0)
+    monkeypatch.setattr(peers.peer, "run", lambda *a, **k: {"steps": [[1.0, 1], [3.0, 100]]})
+    monkeypatch.setattr(peers, "run_peer", fake_peer)
+    monkeypatch.setattr(peers, "run_segs", lambda *a: fake_segs(*a) if a[2] != peers.SEGS_PILOT_STEPS else
+                        {"steps": 200, "train_s": 12.0, "startup_s": 2.0})  # fmt: skip
+    record = {"datasets": []}
+    peers.run_dataset("sample", "opensplat", [1, 2], tmp_path, 0, record, lambda: None, tries=1, repeats=2)
+    assert [c[:2] for c in calls] == [("opensplat", 60.0), ("segs", 60.0), ("segs", 60.0), ("opensplat", 60.0),
+                                      ("segs", 120.0), ("opensplat", 120.0), ("opensplat", 120.0), ("segs", 120.0)]  # fmt: skip
+    assert calls[1][2] == int(200 / 10.0 * peers.PILOT_RATE_FACTOR * 58.0 * peers.AIM)  # the pilot's rate
+    assert calls[2][2] == int(1000 / 58.0 * 58.0 * peers.AIM)  # then the latest run's
+    runs = record["datasets"][0]["runs"]
+    assert [(r["method"], r["budget_min"], r["repeat"]) for r in runs][:4] == [
+        ("opensplat", 1, 0), ("segs", 1, 0), ("segs", 1, 1), ("opensplat", 1, 1)]  # fmt: skip
