@@ -17,7 +17,8 @@ budget (minutes, ascending) one OpenSplat run and one segs run, in alternating o
   Scored with `render_native` (what its own renderer draws; bench/_opensplat.py) and also with a
   correct 3D-GS renderer of its PLY ("std.").
 - segs with the defaults of the dataset's experiment, `trainer.max_steps` sized to end at the
-  budget (a 200-step pilot first, then the rate of the previous budget's run), in a child process
+  budget (a 200-step pilot first, then the rate of the latest run, for a longer budget with its
+  fall from the run before carried on: segs_rate_trend), in a child process
   timed from its launch; the clock stops while test views are scored (at the smaller budgets, for
   the chart, and at the end), and the run stops at the budget.
 Each program runs under /usr/bin/time -v (peak RSS, CPU %), with OMP_NUM_THREADS=2 and its own
@@ -256,10 +257,28 @@ def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0)
 def segs_steps(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:
     """max_steps for a segs run of budget_s: the latest run's steps per training second after
     its first step x rate_factor (below 1 after the pilot alone: its map is smaller), times the
-    budget's seconds after startup, times AIM."""
+    budget's seconds after startup, times AIM. For a longer run than the latest the rate is
+    extrapolated (`segs_rate_trend`): its map grows, and its steps slow down."""
     r = runs[-1]
-    rate = r["steps"] / max(r["train_s"] - r["startup_s"], 1e-6) * rate_factor
-    return max(int(rate * (budget_s - r["startup_s"]) * AIM), 1)
+    seconds = (budget_s - r["startup_s"]) * AIM
+    rate = r["steps"] / max(r["train_s"] - r["startup_s"], 1e-6) * rate_factor * segs_rate_trend(runs, seconds)
+    return max(int(rate * seconds), 1)
+
+
+def segs_rate_trend(runs: list[dict], seconds: float) -> float:
+    """Factor on the latest run's mean rate for a run of `seconds` after startup: rate ~ seconds^a,
+    a fitted on the latest run and the latest before it that trained at most 3/4 as long (a in
+    [-0.5, 0]: the mean rate falls as the map grows); 1 when there is no such pair, the pilot
+    excluded, or the run is not longer than the latest."""
+    def length(r: dict) -> float:
+        return r["train_s"] - r["startup_s"]
+
+    last = runs[-1]
+    earlier = next((r for r in reversed(runs[1:-1]) if length(r) <= 0.75 * length(last)), None)
+    if earlier is None or seconds <= length(last):
+        return 1.0
+    a = np.log((last["steps"] / length(last)) / (earlier["steps"] / length(earlier))) / np.log(length(last) / length(earlier))
+    return float((seconds / length(last)) ** np.clip(a, -0.5, 0.0))
 
 
 # -- runs -----------------------------------------------------------------------------------------

@@ -135,6 +135,16 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     assert n_more == int(2240 * (peers.AIM * 60.0 - 2.0) / (56.0 - 2.0)) > 2240
     # segs: the previous run's steps per second after its startup
     assert peers.segs_steps(120.0, [{"steps": 500, "train_s": 60.0, "startup_s": 10.0}]) == int(10.0 * 110.0 * peers.AIM)
+    # a longer budget than the latest run's: the rate's fall from the run before it carried on (the
+    # sample at 9cb725e: 4 and 8 minutes; sized without the trend, its 15-minute run asked for 31,674
+    # steps and ran 20,317 in 900 s; measured 17,834 steps in 832 s)
+    pilot, r4, r8 = ({"steps": n, "train_s": t, "startup_s": 5.0} for n, t in ((200, 12.0), (6963, 222.0), (12105, 455.0)))
+    a = np.log((12105 / 450) / (6963 / 217)) / np.log(450 / 217)
+    assert -0.3 < a < -0.2
+    assert peers.segs_steps(900.0, [pilot, r4, r8]) == int(12105 / 450 * (895 * peers.AIM / 450) ** a * 895 * peers.AIM)
+    assert 19000 < peers.segs_steps(900.0, [pilot, r4, r8]) < 20000
+    assert peers.segs_steps(470.0, [pilot, r4, r8]) == int(12105 / 450 * 465 * peers.AIM)  # not longer than the latest: no trend
+    assert peers.segs_steps(900.0, [pilot, r8]) == int(12105 / 450 * 895 * peers.AIM)  # no earlier run but the pilot
     assert peers.fits({"method": "segs", "schedule_done": 1.0, "points": [{"seconds": 110.0}]}, 120.0)
     assert not peers.fits({"method": "segs", "schedule_done": 0.8, "points": [{"seconds": 120.0}]}, 120.0)
     assert not peers.fits({"method": "opensplat", "points": [{"seconds": 60.0}]}, 120.0)
