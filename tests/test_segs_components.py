@@ -208,6 +208,41 @@ def test_fused_decoders_equal_the_three_mlps():
     assert torch.equal(info.slots(3), torch.nonzero(keep).squeeze(1) + 0 * info.visible[0])  # all anchors visible here
 
 
+def test_decode_gradients_equal_those_of_plain_indexing():
+    torch.manual_seed(2)
+    field = AnchorField(k=4, feature_dim=8, hidden=8, appearance_dim=0, use_distance=True, frustum_margin=0.15)
+    xyz = torch.rand(30, 3) - 0.5
+    xyz[:, 2] += 3.0
+    xyz[:5, 2] = -3.0  # behind the camera: not visible
+    field.add(xyz, torch.randn(30, 8), torch.randn(30, 6) * 0.3 - 2.0, torch.zeros(30, dtype=torch.long), None)
+    field.rows["offsets"].data.normal_()
+    view = View(torch.eye(4), _camera())
+    decoded, info = field.decode(view, None)
+    assert 0 < len(info.visible) < 30 and 0 < len(decoded) < 4 * len(info.visible)
+    outs = (decoded.means, decoded.quats, decoded.scales, decoded.opacities, decoded.colors)
+    weights = [torch.randn_like(t) for t in outs]
+    loss = sum((t * w).sum() for t, w in zip(outs, weights))
+    params = [field.rows["features"], field.rows["offsets"], field.rows["log_scales"], *field.mlp_cov.parameters()]
+    got = torch.autograd.grad(loss, params)
+    rows = {n: field.rows[n] for n in ("features", "offsets", "log_scales")}
+    vis, keep, k = info.visible, info.keep, 4
+    rel = field.xyz[vis] - view.center
+    dist = rel.norm(dim=-1, keepdim=True)
+    x = torch.cat([rows["features"][vis], rel / dist, dist], -1)
+    scale = torch.exp(rows["log_scales"][vis])[keep // k]
+    means = field.xyz[vis][keep // k] + rows["offsets"][vis].reshape(-1, 3)[keep] * scale[:, :3]
+    cov = field.mlp_cov(x).reshape(-1, 7)[keep]
+    plain = (means, torch.nn.functional.normalize(cov[:, 3:7], dim=-1), scale[:, 3:] * torch.sigmoid(cov[:, :3]),
+             torch.tanh(field.mlp_opacity(x)).reshape(-1)[keep], torch.sigmoid(field.mlp_color(x)).reshape(-1, 3)[keep])  # fmt: skip
+    for a, b in zip(plain, outs):
+        assert torch.allclose(a, b, atol=1e-6)
+    loss = sum((t * w).sum() for t, w in zip(plain, weights))
+    want = torch.autograd.grad(loss, params)
+    for g, w in zip(got, want):
+        assert torch.allclose(g, w, atol=1e-5)
+    assert got[0][~torch.isin(torch.arange(30), vis)].abs().sum() == 0  # no gradient for anchors out of view
+
+
 def test_segs_model_sepm_batches_and_loop_correction():
     model = build_model(model_node("segs", k=2, feature_dim=4, hidden=4, voxel_size=0.05, min_new_points=3))
     pts = torch.tensor([[0.0, 0, 2], [0.01, 0, 2], [1.0, 0, 2]])
