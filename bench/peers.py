@@ -404,20 +404,21 @@ def _finals(entry: dict, method: str, minutes: float) -> list[dict]:
     return [last[k] for k in sorted(last)]
 
 
-def _final(entry: dict, method: str, minutes: float) -> dict | None:
-    """The run of median final PSNR among `_finals` (the lower one of an even count)."""
-    runs = sorted(_finals(entry, method, minutes), key=lambda r: r["points"][-1]["psnr"])
+def _median(runs: list[dict]) -> dict | None:
+    """The run of median final PSNR (the lower one of an even count)."""
+    runs = sorted(runs, key=lambda r: r["points"][-1]["psnr"])
     return runs[(len(runs) - 1) // 2] if runs else None
 
 
-def _spread(entry: dict, method: str, minutes: float) -> str:
-    """' (lowest-highest PSNR of n runs)' when the budget was repeated, else ''."""
-    psnr = [r["points"][-1]["psnr"] for r in _finals(entry, method, minutes)]
+def _final(entry: dict, method: str, minutes: float) -> dict | None:
+    """The run of median final PSNR among `_finals`."""
+    return _median(_finals(entry, method, minutes))
+
+
+def _spread(runs: list[dict]) -> str:
+    """' [lowest-highest PSNR, n runs]' of a repeated budget's runs, else ''."""
+    psnr = [r["points"][-1]["psnr"] for r in runs]
     return f" [{min(psnr):.2f}-{max(psnr):.2f}, {len(psnr)} runs]" if len(psnr) > 1 else ""
-
-
-def _peak_rss(entry: dict, method: str, minutes: float) -> float:
-    return max(r["peak_rss_mb"] for r in _finals(entry, method, minutes))
 
 
 def _budgets(entry: dict) -> list[float]:
@@ -437,21 +438,22 @@ def rows(entry: dict) -> list[str]:
     """Markdown rows, one per budget: both methods' PSNR / SSIM, seconds, steps, size, peak RSS."""
     out = []
     for minutes in _budgets(entry):
-        p, s = _final(entry, "opensplat", minutes), _final(entry, "segs", minutes)
+        ps, ss = _finals(entry, "opensplat", minutes), _finals(entry, "segs", minutes)
+        p, s = _median(ps), _median(ss)
         cells = [f"{entry['dataset']}, {minutes:g} min"]
         if p:
             q = p["points"][-1]
-            cells += [f"{q['psnr']:.2f}{_spread(entry, 'opensplat', minutes)} / {q['ssim']:.3f} ({q['psnr_std']:.2f})",
+            cells += [f"{q['psnr']:.2f}{_spread(ps)} / {q['ssim']:.3f} ({q['psnr_std']:.2f})",
                       f"{q['seconds']:.0f}{_miss(p)}, {q['steps']:,}", f"{_k(q['gaussians'])}, {q['model_mb']:.1f}",
-                      f"{_peak_rss(entry, 'opensplat', minutes):.0f}"]  # fmt: skip
+                      f"{max(r['peak_rss_mb'] for r in ps):.0f}"]  # fmt: skip
         else:
             cells += ["-"] * 4
         if s:
             q, schedule = s["points"][-1], s.get("scheduled_steps", s["max_steps"])
-            cells += [f"{q['psnr']:.2f}{_spread(entry, 'segs', minutes)} / {q['ssim']:.3f}",
+            cells += [f"{q['psnr']:.2f}{_spread(ss)} / {q['ssim']:.3f}",
                       f"{q['seconds']:.0f}{_miss(s)}, {q['steps']:,} ({schedule:,})",
                       f"{_k(q['anchors'])}, {_k(q['gaussians'])} ({_k(q['active'])}), {q['model_mb']:.1f}",
-                      f"{_peak_rss(entry, 'segs', minutes):.0f}"]
+                      f"{max(r['peak_rss_mb'] for r in ss):.0f}"]
         else:
             cells += ["-"] * 4
         cells.append(f"**{s['points'][-1]['psnr'] - p['points'][-1]['psnr']:+.2f}**" if p and s else "-")
@@ -578,6 +580,8 @@ def main() -> None:
     p.add_argument("--part", help=argparse.SUPPRESS)
     p.add_argument("--marks", type=float, nargs="*", default=[], help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.repeats < 1:
+        raise SystemExit(f"error: --repeats must be at least 1, got {args.repeats}")
     if args.segs_run:
         return segs_child(args)
     if args.report:

@@ -225,6 +225,8 @@ def test_a_missing_binary_is_one_line_and_exit_2(tmp_path):
     res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--datasets", "sample"], env=env, capture_output=True,
                          text=True)  # fmt: skip
     assert res.returncode == 2 and res.stderr.strip().count("\n") == 0 and "no OpenSplat binary" in res.stderr
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--repeats", "0"], env=env, capture_output=True, text=True)
+    assert res.returncode != 0 and res.stderr.strip() == "error: --repeats must be at least 1, got 0"
 
 
 @pytest.mark.slow
