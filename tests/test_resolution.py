@@ -69,7 +69,7 @@ def test_a_coarse_render_matches_the_block_mean_of_the_full_render():
 
 
 def test_bad_schedule_values_are_config_errors():
-    base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "min_schedule_steps": 0}
+    base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "min_schedule_steps": 0, "compile": False}
     with pytest.raises(ConfigError, match="mapping.num_downscales"):
         mapping_config({**base, "num_downscales": -1, "downscale_phase": 0.1})
     with pytest.raises(ConfigError, match="mapping.downscale_phase"):

@@ -43,6 +43,30 @@ class DecodeInfo:
         return self.visible[self.keep // k] * k + self.keep % k
 
 
+def assemble(xyz: torch.Tensor, log_scales: torch.Tensor, offsets: torch.Tensor, h_cov: torch.Tensor, h_col: torch.Tensor,
+             opacity: torch.Tensor, keep: torch.Tensor, w_cov: torch.Tensor, b_cov: torch.Tensor, w_col: torch.Tensor,
+             b_col: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The rendered Gaussians of the visible anchors (module docstring): V visible anchors, k
+    Gaussians each, M = len(keep) of the V*k slots rendered (opacity > 0).
+
+    xyz [V,3], log_scales [V,6], offsets [V,k,3] of the visible anchors; h_cov, h_col [V,hidden]
+    hidden layers of the covariance and colour decoders, whose output layers are (w_cov [7k,hidden],
+    b_cov [7k]) and (w_col [3k,hidden], b_col [3k]); opacity [V,k]; keep [M] slot indices.
+    Returns means [M,3], quats [M,4], scales [M,3], opacities [M], colors [M,3]. A pure function
+    of tensors, so torch.compile can fuse it (AnchorField.compile_assembly).
+    """
+    pick = torch.index_select
+    k = opacity.shape[1]
+    anchor = keep // k
+    cov = pick(torch.addmm(b_cov, h_cov, w_cov.T).reshape(-1, 7), 0, keep)
+    color = torch.sigmoid(pick(torch.addmm(b_col, h_col, w_col.T).reshape(-1, 3), 0, keep))
+    scale = pick(torch.exp(log_scales), 0, anchor)  # [M,6]
+    offs = pick(offsets.reshape(-1, 3), 0, keep)
+    means = pick(xyz, 0, anchor) + offs * scale[:, :3]
+    return (means, F.normalize(cov[:, 3:7], dim=-1), scale[:, 3:] * torch.sigmoid(cov[:, :3]),
+            pick(opacity.reshape(-1), 0, keep), color)
+
+
 class AnchorField(nn.Module):
     """Anchors (one PrimitiveRows store) + the three Scaffold-GS decoders (hidden width `hidden`).
 
@@ -65,6 +89,7 @@ class AnchorField(nn.Module):
         self.mlp_opacity = mlp(n_in, hidden, k)
         self.mlp_cov = mlp(n_in, hidden, 7 * k)
         self.mlp_color = mlp(n_in + appearance_dim, hidden, 3 * k)
+        self.assemble = assemble  # the Gaussians from the decoder outputs; compile_assembly() fuses it
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -111,22 +136,19 @@ class AnchorField(nn.Module):
         dist = rel.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         x = torch.cat([pick(self.rows["features"], 0, visible), rel / dist] + ([dist] if self.use_distance else []), -1)
         h_op, h_cov, h_col = self._hidden(x, embedding)
-        k = self.k
         opacity = torch.tanh(self.mlp_opacity[2](h_op))  # [V,k]
         keep = torch.nonzero(opacity.detach().reshape(-1) > 0).squeeze(1)  # rendered slots
-        anchor = keep // k
-        cov = pick(self.mlp_cov[2](h_cov).reshape(-1, 7), 0, keep)
-        color = torch.sigmoid(pick(self.mlp_color[2](h_col).reshape(-1, 3), 0, keep))
-        scale = pick(torch.exp(pick(self.rows["log_scales"], 0, visible)), 0, anchor)  # [M,6]
-        offsets = pick(pick(self.rows["offsets"], 0, visible).reshape(-1, 3), 0, keep)
-        decoded = Decoded(
-            means=pick(xyz, 0, anchor) + offsets * scale[:, :3],
-            quats=F.normalize(cov[:, 3:7], dim=-1),
-            scales=scale[:, 3:] * torch.sigmoid(cov[:, :3]),
-            opacities=pick(opacity.reshape(-1), 0, keep),
-            colors=color,
-        )
+        lin_cov, lin_col = self.mlp_cov[2], self.mlp_color[2]
+        decoded = Decoded(*self.assemble(xyz, pick(self.rows["log_scales"], 0, visible), pick(self.rows["offsets"], 0, visible),
+                                         h_cov, h_col, opacity, keep, lin_cov.weight, lin_cov.bias, lin_col.weight, lin_col.bias))
         return decoded, DecodeInfo(visible, keep, opacity.detach())
+
+    def compile_assembly(self) -> None:
+        """Replace `assemble` with its torch.compile form (dynamic shapes: one compilation serves
+        every visible-anchor count): the gathers and activations fuse into a few kernels forward
+        and backward, fewer launches per step on a GPU. Values agree with the eager form to float
+        rounding."""
+        self.assemble = torch.compile(assemble, dynamic=True)
 
     def _hidden(self, x: torch.Tensor, embedding: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
         """ReLU hidden layers [V,hidden] of the opacity, covariance and colour decoders."""

@@ -48,6 +48,8 @@ class GaussianMapperModule(L.LightningModule):
         self.min_scene_extent = mapping.min_scene_extent
         self.adam_eps = mapping.adam_eps
         self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
+        if mapping.compile:
+            model.compile_step_code()
         self.iteration_ms: list[float] = []
         self._losses: list[float] = []
         self._pending_losses: list[torch.Tensor] = []  # on the device, read back every LOSS_READ steps

@@ -123,7 +123,7 @@ class PlainGaussians(SceneModel):
         )
 
     def loss(self, render, gt, decoded, step, gt_depth=None) -> dict:
-        terms = losses.photometric(render.image, gt, self.lambda_dssim)
+        terms = self.photometric(render.image, gt, self.lambda_dssim)
         total = terms["photometric"]
         if self.lambda_depth > 0 and gt_depth is not None:
             terms["depth"] = losses.depth_l1(render.depth, gt_depth)

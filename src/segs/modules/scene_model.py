@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from segs.data.frame import Camera
+from segs.modules import losses
 from segs.modules.optim import LrSchedule
 
 
@@ -94,6 +95,14 @@ class SceneModel(nn.Module, abc.ABC):
     # state-dict names of checkpoints written before the PrimitiveRows store: old -> new, a name
     # ending in "." renames every key under it (see upgrade_state_keys)
     LEGACY_STATE_KEYS: dict[str, str] = {}
+    # (1 - lambda) L1 + lambda D-SSIM of [H,W,3] images (losses.photometric); compile_step_code
+    # replaces it on the instance with its torch.compile form
+    photometric = staticmethod(losses.photometric)
+
+    def compile_step_code(self) -> None:
+        """torch.compile the tensor code every training step runs (mapping.compile): here the
+        photometric loss; models extend it with their own (SegsModel: the Gaussians' assembly)."""
+        self.photometric = torch.compile(losses.photometric)
 
     @abc.abstractmethod
     def add_points(self, xyz: torch.Tensor, rgb: torch.Tensor, kf_ids: torch.Tensor, optimizer) -> int:

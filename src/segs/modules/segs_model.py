@@ -152,13 +152,18 @@ class SegsModel(SceneModel):
         self.last_rendered = len(decoded)
         return decoded
 
+    def compile_step_code(self) -> None:
+        """The photometric loss (SceneModel) and the Gaussians' assembly (AnchorField.compile_assembly)."""
+        super().compile_step_code()
+        self.field.compile_assembly()
+
     def fpr_active(self, step: int) -> bool:
         f = self.fpr
         return f.enabled and self._at(f.from_step) < step < self._at(f.until_step)
 
     def loss(self, render, gt, decoded, step, gt_depth=None) -> dict:
         w, f = self.loss_w, self.fpr
-        terms = losses.photometric(render.image, gt, w.lambda_dssim)
+        terms = self.photometric(render.image, gt, w.lambda_dssim)
         terms["volume"] = losses.volume(decoded.scales)
         total = terms["photometric"] + w.lambda_vol * terms["volume"]
         if self.fpr_active(step) and f.weight > 0:
