@@ -62,3 +62,16 @@ def test_compiled_photometric_loss_equals_eager():
     for key in ("l1", "ssim", "photometric"):
         assert math.isclose(float(got[key]), float(eager[key]), rel_tol=1e-9, abs_tol=1e-12), key
     assert torch.allclose(g_got, g_eager, atol=1e-12)
+
+
+def test_a_run_with_mapping_compile_true_trains_compiled_and_records_it(tiny_cfg):
+    import json
+    from pathlib import Path
+
+    from segs.train import run as train
+
+    cfg = tiny_cfg("trainer.max_steps=6", "mapping.compile=true", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.write_ply=false")
+    train(cfg)
+    m = json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text())
+    assert m["provenance"]["compiled_step_code"] is True
+    assert m["iterations"] == 6 and m["psnr"] is not None

@@ -25,6 +25,7 @@ class RecordingMapper:
     def __init__(self, uses_depth: bool = False):
         self.iteration_ms: list[float] = []
         self.raster_backend = None
+        self.compiled = False
         self.uses_depth = uses_depth
         self.calls: list[tuple[str, object]] = []
 

@@ -31,6 +31,7 @@ def test_a_training_run_records_how_it_was_made_and_no_ate_for_ground_truth_pose
     _check_common(p)
     assert p["frontend"] == "known_poses" and p["sensor"] == "rgbd" and p["seed"] == 3
     assert p["raster_backend"] in ("cpu", "torch") and p["device"] == "cpu"
+    assert p["compiled_step_code"] is False  # mapping.compile=null: compiled on a CUDA device only
     assert p["threads"]["torch"] >= 1
     assert "seed=3" in p["overrides"] and "trainer.max_steps=20" in p["overrides"]
     # the known-poses frontend replays the ground truth: ATE is not measured, never a 0.00 cm

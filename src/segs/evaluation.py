@@ -150,7 +150,8 @@ def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConf
         **summary,
         **(notes or {}),
         "status": "finished",
-        "provenance": {**(provenance or {}), "raster_backend": module.raster_backend},
+        "provenance": {**(provenance or {}), "raster_backend": module.raster_backend,
+                       "compiled_step_code": module.compiled},
     }
     if ate_result.get("reason") == GROUND_TRUTH_POSES:
         metrics["ate_note"] = "n/a: the frontend replays the ground-truth poses (slam=known_poses); no trajectory was estimated"
@@ -169,7 +170,8 @@ def write_not_evaluated(module: GaussianMapper, sequence, run: RunState, out: Pa
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
     metrics = {**none, "test_views": 0, **run_summary(module, sequence, run, timing), **(notes or {}), "status": "not_evaluated",
                "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed",
-               "provenance": {**(provenance or {}), "raster_backend": module.raster_backend}}  # fmt: skip
+               "provenance": {**(provenance or {}), "raster_backend": module.raster_backend,
+                       "compiled_step_code": module.compiled}}  # fmt: skip
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
 

@@ -122,7 +122,7 @@ class MappingConfig:
     num_downscales: int  # coarse-to-fine: first steps at 1/2^n of the image size (0 = off)
     downscale_phase: float  # fraction of the schedule each coarser level lasts
     min_schedule_steps: int  # coarse-to-fine: schedules sized for at least this many steps (0 = the run's)
-    compile: bool  # torch.compile the model's per-step tensor code (SceneModel.compile_step_code)
+    compile: bool | None  # torch.compile the model's per-step tensor code (SceneModel.compile_step_code); None: on a CUDA device
 
 
 @dataclass

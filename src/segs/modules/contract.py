@@ -81,6 +81,7 @@ class GaussianMapper(Protocol):
     iteration_ms: list[float]  # wall time of every training step so far (resumed runs included)
     raster_backend: str | None  # the rasterizer backend of the latest render ("cpu", "cuda", "torch"); None before one
     uses_depth: bool  # whether training reads TrainingView.depth (without it the bridge keeps no depth)
+    compiled: bool  # whether the model's per-step tensor code runs compiled (mapping.compile)
 
     def add_keyframes(self, views: list[TrainingView]) -> None:
         """New training views (their poses are registered here, once)."""

@@ -48,8 +48,8 @@ class GaussianMapperModule(L.LightningModule):
         self.min_scene_extent = mapping.min_scene_extent
         self.adam_eps = mapping.adam_eps
         self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
-        if mapping.compile:
-            model.compile_step_code()
+        self.compile_mode = mapping.compile  # None: on a CUDA device (on_fit_start)
+        self.compiled = False
         self.iteration_ms: list[float] = []
         self._losses: list[float] = []
         self._pending_losses: list[torch.Tensor] = []  # on the device, read back every LOSS_READ steps
@@ -187,6 +187,13 @@ class GaussianMapperModule(L.LightningModule):
         return {"image": out.image.clamp(0, 1).cpu(), "depth": out.depth.cpu(), "alpha": out.alpha.cpu()}
 
     # -- training -------------------------------------------------------------------------------
+    def on_fit_start(self) -> None:
+        """mapping.compile: the model's per-step tensor code compiled (null: on a CUDA device)."""
+        want = self.device.type == "cuda" if self.compile_mode is None else self.compile_mode
+        if want and not self.compiled:
+            self.model.compile_step_code()
+            self.compiled = True
+
     def configure_optimizers(self):
         return make_adam(self.model.param_groups(), eps=self.adam_eps)
 
