@@ -29,7 +29,8 @@ def _cli(args: list[str], **kw) -> subprocess.Popen:
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_signal_stops_at_a_step_boundary_and_the_run_resumes(tmp_path, sig, code):
     out = tmp_path / "run"
-    base = TINY + ["trainer.max_steps=400", f"hydra.run.dir={out}", "callbacks.periodic_checkpoint.every_n_steps=10"]
+    base = TINY + ["trainer.max_steps=400", f"hydra.run.dir={out}", "callbacks.periodic_checkpoint.every_n_steps=10",
+                   "callbacks.periodic_checkpoint.min_interval_s=0"]
     proc = _cli(base)
     ckpt = out / "checkpoints" / "last.ckpt"
     deadline = time.time() + 120

@@ -58,7 +58,8 @@ def test_resume_continues_at_the_same_step_with_the_same_anchors(tiny_cfg, tmp_p
     
     from segs.train import build, step_batches
 
-    first = tiny_cfg("trainer.max_steps=30", "callbacks.periodic_checkpoint.every_n_steps=20", "eval.enabled=false", out=tmp_path / "a")
+    first = tiny_cfg("trainer.max_steps=30", "callbacks.periodic_checkpoint.every_n_steps=20",
+                      "callbacks.periodic_checkpoint.min_interval_s=0", "eval.enabled=false", out=tmp_path / "a")
     t = build(first)
     module, trainer = t.module, t.trainer
     trainer.fit(module, step_batches(30))

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from pathlib import Path
 
 import lightning as L
@@ -44,11 +45,18 @@ def save_atomic(trainer: L.Trainer, path: str | Path) -> Path:
 
 
 class PeriodicCheckpoint(L.Callback):
-    """Writes <dirpath>/last.ckpt every `every_n_steps` steps (0 = never periodically)."""
+    """Writes <dirpath>/last.ckpt every `every_n_steps` steps (0 = never periodically), skipping a
+    due step that comes less than `min_interval_s` seconds after the previous write (or the start
+    of training): a fast device's steps do not turn checkpoints into a share of the run."""
 
-    def __init__(self, every_n_steps: int = 1000, dirpath: str | None = None):
+    def __init__(self, every_n_steps: int = 1000, dirpath: str | None = None, min_interval_s: float = 0.0):
         self.every_n_steps = every_n_steps
         self.dirpath = dirpath
+        self.min_interval_s = min_interval_s
+        self._last = time.monotonic()
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._last = time.monotonic()
 
     def path(self, trainer: L.Trainer) -> Path:
         return Path(self.dirpath or Path(trainer.default_root_dir) / "checkpoints") / "last.ckpt"
@@ -56,4 +64,7 @@ class PeriodicCheckpoint(L.Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
         if self.every_n_steps and step > 0 and step % self.every_n_steps == 0:
+            if time.monotonic() - self._last < self.min_interval_s:
+                return
             save_atomic(trainer, self.path(trainer))
+            self._last = time.monotonic()
