@@ -34,14 +34,14 @@ def _decode_and_grads(field: AnchorField, view: View, emb: torch.Tensor):
     return outs, torch.autograd.grad(loss, params), info
 
 
-def test_compiled_assembly_equals_eager_for_two_visible_counts():
+def test_compiled_decoding_equals_eager_for_two_anchor_counts():
     cam = Camera(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
     emb = torch.randn(4)
     for n in (30, 57):  # the second count reuses the dynamic-shape compilation
         field = _field(n)
         view = View(torch.eye(4), cam)
         eager, eager_grads, info = _decode_and_grads(field, view, emb)
-        field.compile_assembly()
+        field.compile_decoding()
         got, got_grads, info_c = _decode_and_grads(field, view, emb)
         assert torch.equal(info.keep, info_c.keep) and len(got[0]) == len(eager[0]) > 0
         for a, b in zip(got, eager):
@@ -75,3 +75,18 @@ def test_a_run_with_mapping_compile_true_trains_compiled_and_records_it(tiny_cfg
     m = json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text())
     assert m["provenance"]["compiled_step_code"] is True
     assert m["iterations"] == 6 and m["psnr"] is not None
+
+
+def test_compiled_decoding_does_not_recompile_when_the_rows_grow():
+    torch._dynamo.reset()
+    cam = Camera(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
+    field, emb, view = _field(30), torch.randn(4), View(torch.eye(4), cam)
+    field.compile_decoding()
+    _decode_and_grads(field, view, emb)  # compiles for any anchor count
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        for n in (7, 12):  # growth replaces every row with a longer one
+            xyz = torch.rand(n, 3) - 0.5
+            xyz[:, 2] += 3.0
+            field.add(xyz, torch.randn(n, 8), torch.randn(n, 6) * 0.3 - 2.0, torch.zeros(n, dtype=torch.long), None)
+            outs, grads, info = _decode_and_grads(field, View(torch.eye(4), cam), emb)
+            assert len(info.visible) > 30 and all(torch.isfinite(g).all() for g in grads)

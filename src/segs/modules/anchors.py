@@ -43,6 +43,35 @@ class DecodeInfo:
         return self.visible[self.keep // k] * k + self.keep % k
 
 
+def decode_front(xyz_all: torch.Tensor, features: torch.Tensor, visible: torch.Tensor, center: torch.Tensor,
+                 first: tuple[tuple[torch.Tensor, torch.Tensor], ...], opacity_out: tuple[torch.Tensor, torch.Tensor],
+                 embedding: torch.Tensor | None, use_distance: bool) -> tuple[torch.Tensor, ...]:
+    """The decoders' input and hidden layers for the V visible anchors, and their opacities.
+
+    xyz_all [N,3] every anchor's position; visible [V] the visible ones' indices; features [V,F]
+    their features (gathered by the caller: torch.compile treats a parameter's shape as fixed, and
+    the feature rows change size with every growth round); center [3] the camera centre; first:
+    (weight, bias) of the opacity, covariance and colour decoders' first layers (the colour one
+    also takes the embedding); opacity_out: (weight [k,hidden], bias [k]) of the opacity decoder's
+    output layer; embedding [A] or None. The three first layers share their
+    input, so they run as one matrix product, the embedding's part of the colour layer as a bias.
+    Returns xyz [V,3], h_cov [V,hidden], h_col [V,hidden], opacity [V,k] = tanh(M_alpha(x)).
+    A pure function of tensors, like `assemble` (AnchorField.compile_decoding).
+    """
+    pick = torch.index_select
+    xyz = pick(xyz_all, 0, visible)
+    rel = xyz - center
+    dist = rel.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    x = torch.cat([features, rel / dist] + ([dist] if use_distance else []), -1)
+    (w_op, b_op), (w_cov, b_cov), (w_col, b_col) = first
+    n_in = x.shape[1]
+    weight = torch.cat([w_op, w_cov, w_col[:, :n_in]], 0)
+    if embedding is not None:
+        b_col = b_col + w_col[:, n_in:] @ embedding.to(x)
+    h_op, h_cov, h_col = torch.relu(torch.addmm(torch.cat([b_op, b_cov, b_col]), x, weight.T)).split(w_op.shape[0], dim=1)
+    return xyz, h_cov, h_col, torch.tanh(torch.addmm(opacity_out[1], h_op, opacity_out[0].T))
+
+
 def assemble(xyz: torch.Tensor, log_scales: torch.Tensor, offsets: torch.Tensor, h_cov: torch.Tensor, h_col: torch.Tensor,
              opacity: torch.Tensor, keep: torch.Tensor, w_cov: torch.Tensor, b_cov: torch.Tensor, w_col: torch.Tensor,
              b_col: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -53,7 +82,7 @@ def assemble(xyz: torch.Tensor, log_scales: torch.Tensor, offsets: torch.Tensor,
     hidden layers of the covariance and colour decoders, whose output layers are (w_cov [7k,hidden],
     b_cov [7k]) and (w_col [3k,hidden], b_col [3k]); opacity [V,k]; keep [M] slot indices.
     Returns means [M,3], quats [M,4], scales [M,3], opacities [M], colors [M,3]. A pure function
-    of tensors, so torch.compile can fuse it (AnchorField.compile_assembly).
+    of tensors, so torch.compile can fuse it (AnchorField.compile_decoding).
     """
     pick = torch.index_select
     k = opacity.shape[1]
@@ -89,7 +118,8 @@ class AnchorField(nn.Module):
         self.mlp_opacity = mlp(n_in, hidden, k)
         self.mlp_cov = mlp(n_in, hidden, 7 * k)
         self.mlp_color = mlp(n_in + appearance_dim, hidden, 3 * k)
-        self.assemble = assemble  # the Gaussians from the decoder outputs; compile_assembly() fuses it
+        # the decoding's pure tensor functions; compile_decoding() replaces them with compiled forms
+        self.in_frustum, self.decode_front, self.assemble = frustum_mask, decode_front, assemble
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -125,38 +155,29 @@ class AnchorField(nn.Module):
         the colour decoder is the same for every anchor and enters as a bias.
         """
         if cull:
-            visible = torch.nonzero(frustum_mask(self.xyz, view, self.frustum_margin)).squeeze(1)
+            visible = torch.nonzero(self.in_frustum(self.xyz, view, self.frustum_margin)).squeeze(1)
         else:
             visible = torch.arange(len(self), device=self.xyz.device)
         # index_select, not t[idx]: its backward is index_add_, several times faster on the CPU
         # than the accumulating index_put_ of advanced indexing (the same sums)
         pick = torch.index_select
-        xyz = pick(self.xyz, 0, visible)
-        rel = xyz - view.center.to(xyz)
-        dist = rel.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        x = torch.cat([pick(self.rows["features"], 0, visible), rel / dist] + ([dist] if self.use_distance else []), -1)
-        h_op, h_cov, h_col = self._hidden(x, embedding)
-        opacity = torch.tanh(self.mlp_opacity[2](h_op))  # [V,k]
+        first = tuple((m[0].weight, m[0].bias) for m in (self.mlp_opacity, self.mlp_cov, self.mlp_color))
+        xyz, h_cov, h_col, opacity = self.decode_front(
+            self.xyz, pick(self.rows["features"], 0, visible), visible, view.center.to(self.xyz), first,
+            (self.mlp_opacity[2].weight, self.mlp_opacity[2].bias), embedding if self.appearance_dim else None, self.use_distance,
+        )  # fmt: skip
         keep = torch.nonzero(opacity.detach().reshape(-1) > 0).squeeze(1)  # rendered slots
         lin_cov, lin_col = self.mlp_cov[2], self.mlp_color[2]
         decoded = Decoded(*self.assemble(xyz, pick(self.rows["log_scales"], 0, visible), pick(self.rows["offsets"], 0, visible),
                                          h_cov, h_col, opacity, keep, lin_cov.weight, lin_cov.bias, lin_col.weight, lin_col.bias))
         return decoded, DecodeInfo(visible, keep, opacity.detach())
 
-    def compile_assembly(self) -> None:
-        """Replace `assemble` with its torch.compile form (dynamic shapes: one compilation serves
-        every visible-anchor count): the gathers and activations fuse into a few kernels forward
-        and backward, fewer launches per step on a GPU. Values agree with the eager form to float
-        rounding."""
+    def compile_decoding(self) -> None:
+        """Replace the frustum test, `decode_front` and `assemble` with their torch.compile forms
+        (dynamic shapes: one compilation serves every anchor count; no parameter row is an
+        argument, so growth and pruning, which resize them, compile nothing again): the gathers, activations
+        and comparisons fuse into a few kernels forward and backward, fewer launches per step on
+        a GPU. Values agree with the eager forms to float rounding."""
+        self.in_frustum = torch.compile(frustum_mask, dynamic=True)
+        self.decode_front = torch.compile(decode_front, dynamic=True)
         self.assemble = torch.compile(assemble, dynamic=True)
-
-    def _hidden(self, x: torch.Tensor, embedding: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
-        """ReLU hidden layers [V,hidden] of the opacity, covariance and colour decoders."""
-        n_in = x.shape[1]
-        first = (self.mlp_opacity[0], self.mlp_cov[0], self.mlp_color[0])
-        weight = torch.cat([first[0].weight, first[1].weight, first[2].weight[:, :n_in]], 0)
-        bias_col = first[2].bias
-        if self.appearance_dim and embedding is not None:
-            bias_col = bias_col + first[2].weight[:, n_in:] @ embedding.to(x)
-        bias = torch.cat([first[0].bias, first[1].bias, bias_col])
-        return torch.relu(torch.addmm(bias, x, weight.T)).split(first[0].out_features, dim=1)

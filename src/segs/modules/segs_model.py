@@ -153,9 +153,9 @@ class SegsModel(SceneModel):
         return decoded
 
     def compile_step_code(self) -> None:
-        """The photometric loss (SceneModel) and the Gaussians' assembly (AnchorField.compile_assembly)."""
+        """The photometric loss (SceneModel) and the anchors' decoding (AnchorField.compile_decoding)."""
         super().compile_step_code()
-        self.field.compile_assembly()
+        self.field.compile_decoding()
 
     def fpr_active(self, step: int) -> bool:
         f = self.fpr

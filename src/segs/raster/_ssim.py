@@ -51,6 +51,7 @@ def fused_ssim_available(render: torch.Tensor, window: int) -> bool:
     return True
 
 
+@torch.compiler.disable  # a C++ kernel called through data pointers: opaque to torch.compile (its result would be a guard)
 def fused_ssim(render: torch.Tensor, target: torch.Tensor, window: torch.Tensor, c1: float, c2: float) -> torch.Tensor:
     """Mean SSIM of [C,H,W] float32 CPU images with the separable window [taps] (odd, normalised) and
     stabilisers c1, c2; differentiable in ``render``."""
