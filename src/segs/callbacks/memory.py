@@ -12,6 +12,7 @@ from pathlib import Path
 
 import lightning as L
 import psutil
+import torch
 
 from segs.callbacks.checkpoint import save_atomic
 from segs.errors import LimitError
@@ -63,4 +64,4 @@ class MemoryGuard(L.Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self.every_n_steps and trainer.global_step % self.every_n_steps == 0:
             self.check(trainer, f"at step {trainer.global_step}")
-            pl_module.log("system/rss_mb", rss_mb(), on_step=True, on_epoch=False)
+            pl_module.log("system/rss_mb", torch.tensor(rss_mb()), on_step=True, on_epoch=False)  # a host tensor: no copy to a GPU

@@ -18,7 +18,7 @@ import torch
 
 from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.contract import GaussianCloud, MapCounts, TrainingView
-from segs.modules.metrics import psnr
+from segs.modules.metrics import psnr_tensor
 from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.resolution import coarse_camera, coarse_depth, coarse_image, downscale_factor
 from segs.modules.scene_model import SceneModel, View, upgrade_state_keys
@@ -233,18 +233,19 @@ class GaussianMapperModule(L.LightningModule):
     def _log_step(self, terms: dict, image: torch.Tensor, gt: torch.Tensor, edits: dict, factor: int) -> None:
         """The step's scalars, on the steps the logger writes (Lightning writes the values logged in
         the batch of every log_every_n_steps-th optimizer step; densification runs every 100 steps,
-        on such a step with the default 10): logging every step cost 3-4 ms of a 35-55 ms CPU step."""
+        on such a step with the default 10): logging every step cost 3-4 ms of a 35-55 ms CPU step.
+        Every value is handed over as a host tensor: the device's scalars read back in one copy,
+        the host's numbers not copied to the device (which Lightning does with a Python number)."""
         counts = self.model.counts()
-        self.log("loss", terms["total"].detach(), prog_bar=True, on_step=True, on_epoch=False)
-        self.log("gaussians", float(counts["gaussians"]), prog_bar=True, on_step=True, on_epoch=False)
-        metrics = {f"train/{k}": v.detach() for k, v in terms.items() if k != "total" and torch.is_tensor(v)}
-        metrics["train/psnr"] = psnr(image, gt)
-        metrics["train/iteration_ms"] = self.iteration_ms[-1]
-        metrics["train/downscale"] = float(factor)
-        metrics["model/anchors"] = float(counts["anchors"])
-        metrics["model/keyframes"] = float(len(self.views))
-        metrics.update({f"densify/{k}": float(v) for k, v in edits.items()})
-        self.log_dict(metrics, on_step=True, on_epoch=False)
+        on_device = {"loss": terms["total"], **{f"train/{k}": v for k, v in terms.items() if k != "total" and torch.is_tensor(v)},
+                     "train/psnr": psnr_tensor(image, gt)}  # fmt: skip
+        read = torch.stack([v.detach().reshape(()).double() for v in on_device.values()]).cpu()
+        host = dict(zip(on_device, read.unbind()))
+        self.log("loss", host.pop("loss"), prog_bar=True, on_step=True, on_epoch=False)
+        self.log("gaussians", torch.tensor(float(counts["gaussians"])), prog_bar=True, on_step=True, on_epoch=False)
+        numbers = {"train/iteration_ms": self.iteration_ms[-1], "train/downscale": factor, "model/anchors": counts["anchors"],
+                   "model/keyframes": len(self.views), **{f"densify/{k}": v for k, v in edits.items()}}  # fmt: skip
+        self.log_dict({**host, **{k: torch.tensor(float(v)) for k, v in numbers.items()}}, on_step=True, on_epoch=False)
 
     # -- checkpoints ----------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict) -> None:

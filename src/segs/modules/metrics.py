@@ -25,8 +25,13 @@ log = logging.getLogger(__name__)
 
 def psnr(render: torch.Tensor, gt: torch.Tensor) -> float:
     """Mean over channels of 20 log10(1 / sqrt(MSE_c)); [H,W,3] images in [0,1]."""
+    return float(psnr_tensor(render, gt))
+
+
+def psnr_tensor(render: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """`psnr` as a 0-d tensor on the images' device (no read back)."""
     mse = ((render.clamp(0, 1) - gt) ** 2).reshape(-1, render.shape[-1]).mean(0).clamp_min(1e-12)
-    return float((20.0 * torch.log10(1.0 / torch.sqrt(mse))).mean())
+    return (20.0 * torch.log10(1.0 / torch.sqrt(mse))).mean()
 
 
 def ssim(render: torch.Tensor, gt: torch.Tensor) -> float:
