@@ -10,7 +10,7 @@ from segs.modules import losses
 from segs.modules.anchors import AnchorField
 from segs.modules.scene_model import View
 
-pytestmark = pytest.mark.slow  # each compilation takes seconds on two cores
+SLOW = pytest.mark.slow  # each compilation takes seconds on two cores
 
 
 def _field(n: int) -> AnchorField:
@@ -34,6 +34,7 @@ def _decode_and_grads(field: AnchorField, view: View, emb: torch.Tensor):
     return outs, torch.autograd.grad(loss, params), info
 
 
+@SLOW
 def test_compiled_decoding_equals_eager_for_two_anchor_counts():
     cam = Camera(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
     emb = torch.randn(4)
@@ -50,6 +51,7 @@ def test_compiled_decoding_equals_eager_for_two_anchor_counts():
             assert torch.allclose(a, b, atol=1e-4, rtol=1e-4), (a - b).abs().max()
 
 
+@SLOW
 def test_compiled_photometric_loss_equals_eager():
     torch.manual_seed(4)
     gt = torch.rand(24, 32, 3, dtype=torch.float64)  # float64: the kornia path (a GPU's), not the CPU's fused kernel
@@ -64,6 +66,7 @@ def test_compiled_photometric_loss_equals_eager():
     assert torch.allclose(g_got, g_eager, atol=1e-12)
 
 
+@SLOW
 def test_a_run_with_mapping_compile_true_trains_compiled_and_records_it(tiny_cfg):
     import json
     from pathlib import Path
@@ -77,6 +80,7 @@ def test_a_run_with_mapping_compile_true_trains_compiled_and_records_it(tiny_cfg
     assert m["iterations"] == 6 and m["psnr"] is not None
 
 
+@SLOW
 def test_compiled_decoding_does_not_recompile_when_the_rows_grow():
     torch._dynamo.reset()
     cam = Camera(fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48)
@@ -90,3 +94,21 @@ def test_compiled_decoding_does_not_recompile_when_the_rows_grow():
             field.add(xyz, torch.randn(n, 8), torch.randn(n, 6) * 0.3 - 2.0, torch.zeros(n, dtype=torch.long), None)
             outs, grads, info = _decode_and_grads(field, View(torch.eye(4), cam), emb)
             assert len(info.visible) > 30 and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_where_torch_compile_cannot_build_null_runs_eager_and_true_is_a_config_error(tiny_cfg, monkeypatch, tmp_path):
+    from segs.errors import ConfigError
+    from segs.modules import gaussian_mapper
+    from segs.train import build, step_batches
+
+    monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setattr(gaussian_mapper.shutil, "which", lambda name: None)  # no C++ compiler
+    assert "no C++ compiler" in gaussian_mapper.compile_unavailable(torch.device("cpu"))
+    monkeypatch.setattr(gaussian_mapper.importlib.util, "find_spec", lambda name: None)
+    assert "Triton is not installed" in gaussian_mapper.compile_unavailable(torch.device("cuda"))
+    t = build(tiny_cfg("trainer.max_steps=2", "mapping.compile=true", "eval.enabled=false", out=tmp_path / "a"))
+    with pytest.raises(ConfigError, match="mapping.compile=true: no C\\+\\+ compiler"):
+        t.trainer.fit(t.module, step_batches(2))
+    t = build(tiny_cfg("trainer.max_steps=2", "eval.enabled=false", out=tmp_path / "b"))  # null on the CPU: eager, nothing checked
+    t.trainer.fit(t.module, step_batches(2))
+    assert t.module.compiled is False

@@ -8,14 +8,18 @@ first_view, render_image, count_active, training_views, gaussians, export_ply.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import logging
+import os
 import random
+import shutil
 import time
 
 import lightning as L
 import numpy as np
 import torch
 
+from segs.errors import ConfigError
 from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.contract import GaussianCloud, MapCounts, TrainingView
 from segs.modules.metrics import psnr_tensor
@@ -29,6 +33,20 @@ log = logging.getLogger(__name__)
 
 
 LOSS_READ = 100  # training losses are read back to the host in batches: on a GPU each read is a sync
+
+
+def compile_unavailable(device: torch.device) -> str | None:
+    """Why torch.compile cannot build code for `device`, or None: a CUDA device needs Triton and
+    compute capability 7.0 or newer, the CPU a C++ compiler."""
+    if device.type == "cuda":
+        if importlib.util.find_spec("triton") is None:
+            return "Triton is not installed (torch.compile's CUDA code generator)"
+        major, minor = torch.cuda.get_device_capability(device)
+        return None if major >= 7 else f"compute capability {major}.{minor} is below Triton's 7.0"
+    if device.type == "cpu":
+        compilers = [os.environ.get("CXX"), "g++", "clang++", "c++"]
+        return None if any(c and shutil.which(c) for c in compilers) else "no C++ compiler (g++, clang++ or $CXX) on the PATH"
+    return f"no compiled step code for {device.type} devices"
 
 
 class GaussianMapperModule(L.LightningModule):
@@ -188,11 +206,20 @@ class GaussianMapperModule(L.LightningModule):
 
     # -- training -------------------------------------------------------------------------------
     def on_fit_start(self) -> None:
-        """mapping.compile: the model's per-step tensor code compiled (null: on a CUDA device)."""
-        want = self.device.type == "cuda" if self.compile_mode is None else self.compile_mode
-        if want and not self.compiled:
-            self.model.compile_step_code()
-            self.compiled = True
+        """mapping.compile: the model's per-step tensor code compiled (null: on a CUDA device that
+        torch.compile can build for, else eager with a note in the log; true: an error if it cannot)."""
+        if self.compiled or self.compile_mode is False:
+            return
+        if self.compile_mode is None and self.device.type != "cuda":
+            return
+        reason = compile_unavailable(self.device)
+        if reason is not None:
+            if self.compile_mode:
+                raise ConfigError(f"mapping.compile=true: {reason}; set mapping.compile=false")
+            log.warning("mapping.compile: %s; the training step runs eager", reason)
+            return
+        self.model.compile_step_code()
+        self.compiled = True
 
     def configure_optimizers(self):
         return make_adam(self.model.param_groups(), eps=self.adam_eps)
