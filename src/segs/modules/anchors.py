@@ -53,8 +53,8 @@ def decode_front(xyz_all: torch.Tensor, features: torch.Tensor, visible: torch.T
     the feature rows change size with every growth round); center [3] the camera centre; first:
     (weight, bias) of the opacity, covariance and colour decoders' first layers (the colour one
     also takes the embedding); opacity_out: (weight [k,hidden], bias [k]) of the opacity decoder's
-    output layer; embedding [A] or None. The three first layers share their
-    input, so they run as one matrix product, the embedding's part of the colour layer as a bias.
+    output layer; embedding [A] or None. The three first layers share their input, so they run as
+    one matrix product, the embedding's part of the colour layer as a bias.
     Returns xyz [V,3], h_cov [V,hidden], h_col [V,hidden], opacity [V,k] = tanh(M_alpha(x)).
     A pure function of tensors, like `assemble` (AnchorField.compile_decoding).
     """
@@ -175,9 +175,9 @@ class AnchorField(nn.Module):
     def compile_decoding(self) -> None:
         """Replace the frustum test, `decode_front` and `assemble` with their torch.compile forms
         (dynamic shapes: one compilation serves every anchor count; no parameter row is an
-        argument, so growth and pruning, which resize them, compile nothing again): the gathers, activations
-        and comparisons fuse into a few kernels forward and backward, fewer launches per step on
-        a GPU. Values agree with the eager forms to float rounding."""
+        argument, so growth and pruning, which resize them, compile nothing again): the gathers,
+        activations and comparisons fuse into a few kernels forward and backward, fewer launches
+        per step on a GPU. Values agree with the eager forms to float rounding."""
         self.in_frustum = torch.compile(frustum_mask, dynamic=True)
         self.decode_front = torch.compile(decode_front, dynamic=True)
         self.assemble = torch.compile(assemble, dynamic=True)
