@@ -17,6 +17,7 @@ outputs/bench/train_step.json.
     python bench/train_step.py --downscale 4   # the timed iterations at 1/4 size (coarse-to-fine's first phase)
     python bench/train_step.py --models segs --variant model.k=5   # the defaults and a variant, timed alternately
     python bench/train_step.py --backend cuda --device cuda --profile   # wall vs device time per step (GPU)
+    python bench/train_step.py --backend cuda --device cuda --profile --extra mapping.compile=false   # the same, eager
 
 With --profile the phases are not synchronised: the timed steps run as in segs.train under
 torch.profiler, and the table gives wall time per step against the device's kernel time per step;
