@@ -3,8 +3,8 @@ from types import SimpleNamespace
 
 import torch
 
+from segs.callbacks import cadence
 from segs.callbacks import checkpoint as ckpt_mod
-from segs.callbacks import logging as log_mod
 from segs.callbacks.checkpoint import PeriodicCheckpoint
 from segs.callbacks.logging import ImageLogger
 
@@ -27,7 +27,7 @@ def _steps(callback, trainer, clock, seconds_per_step, n):
 
 def test_periodic_checkpoint_skips_due_steps_inside_the_interval(monkeypatch, tmp_path):
     clock, saved = Clock(), []
-    monkeypatch.setattr(ckpt_mod.time, "monotonic", clock)
+    monkeypatch.setattr(cadence.time, "monotonic", clock)
     monkeypatch.setattr(ckpt_mod, "save_atomic", lambda trainer, path: saved.append(trainer.global_step))
     trainer = SimpleNamespace(global_step=0, default_root_dir=str(tmp_path), module=None)
     slow = PeriodicCheckpoint(every_n_steps=10, dirpath=str(tmp_path), min_interval_s=5.0)
@@ -47,7 +47,7 @@ def test_periodic_checkpoint_skips_due_steps_inside_the_interval(monkeypatch, tm
 
 def test_image_logger_logs_the_first_due_step_then_at_most_one_per_interval(monkeypatch):
     clock, logged = Clock(), []
-    monkeypatch.setattr(log_mod.time, "monotonic", clock)
+    monkeypatch.setattr(cadence.time, "monotonic", clock)
     kf = SimpleNamespace(w2c=torch.eye(4), camera=None, kf_id=0, rgb=lambda: torch.zeros(2, 3, 3))
     module = SimpleNamespace(first_view=lambda: kf, render_image=lambda w2c, cam, kf_id: {"image": torch.ones(2, 3, 3)})
     experiment = SimpleNamespace(add_image=lambda tag, img, global_step: logged.append(global_step))

@@ -123,6 +123,12 @@ def run_summary(module: GaussianMapper, sequence, run: RunState, timing: dict) -
     return summary
 
 
+def mapper_provenance(module: GaussianMapper, provenance: dict | None) -> dict:
+    """The run's provenance with what the mapper did: the rasterizer backend that rendered and
+    whether the step's tensor code ran compiled."""
+    return {**(provenance or {}), "raster_backend": module.raster_backend, "compiled_step_code": module.compiled}
+
+
 def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConfig, out: Path, timing: dict, notes: dict | None = None,
              watch: Callable[[str], None] | None = None, provenance: dict | None = None) -> dict:  # fmt: skip
     """Compute and write every result file of a run; returns the metrics dict (metrics.json, last).
@@ -150,8 +156,7 @@ def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConf
         **summary,
         **(notes or {}),
         "status": "finished",
-        "provenance": {**(provenance or {}), "raster_backend": module.raster_backend,
-                       "compiled_step_code": module.compiled},
+        "provenance": mapper_provenance(module, provenance),
     }
     if ate_result.get("reason") == GROUND_TRUTH_POSES:
         metrics["ate_note"] = "n/a: the frontend replays the ground-truth poses (slam=known_poses); no trajectory was estimated"
@@ -170,8 +175,7 @@ def write_not_evaluated(module: GaussianMapper, sequence, run: RunState, out: Pa
     none = dict.fromkeys(("psnr", "ssim", "lpips", "ate_rmse_m", "active_gaussians"))
     metrics = {**none, "test_views": 0, **run_summary(module, sequence, run, timing), **(notes or {}), "status": "not_evaluated",
                "eval_note": "eval.enabled=false: no test view was rendered and no ATE computed",
-               "provenance": {**(provenance or {}), "raster_backend": module.raster_backend,
-                       "compiled_step_code": module.compiled}}  # fmt: skip
+               "provenance": mapper_provenance(module, provenance)}  # fmt: skip
     write_json_atomic(out / "metrics.json", metrics)
     return metrics
 

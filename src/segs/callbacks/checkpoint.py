@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import contextlib
 import os
-import time
 from pathlib import Path
 
 import lightning as L
 import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
+
+from segs.callbacks.cadence import StepCadence
 
 
 class DirectCheckpointIO(TorchCheckpointIO):
@@ -50,21 +51,17 @@ class PeriodicCheckpoint(L.Callback):
     of training): a fast device's steps do not turn checkpoints into a share of the run."""
 
     def __init__(self, every_n_steps: int = 1000, dirpath: str | None = None, min_interval_s: float = 0.0):
-        self.every_n_steps = every_n_steps
+        self.cadence = StepCadence(every_n_steps, min_interval_s)
+        self.cadence.restart()
         self.dirpath = dirpath
-        self.min_interval_s = min_interval_s
-        self._last = time.monotonic()
 
     def on_train_start(self, trainer, pl_module) -> None:
-        self._last = time.monotonic()
+        self.cadence.restart()
 
     def path(self, trainer: L.Trainer) -> Path:
         return Path(self.dirpath or Path(trainer.default_root_dir) / "checkpoints") / "last.ckpt"
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        step = trainer.global_step
-        if self.every_n_steps and step > 0 and step % self.every_n_steps == 0:
-            if time.monotonic() - self._last < self.min_interval_s:
-                return
+        if trainer.global_step > 0 and self.cadence.due(trainer.global_step):
             save_atomic(trainer, self.path(trainer))
-            self._last = time.monotonic()
+            self.cadence.done()

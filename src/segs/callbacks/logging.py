@@ -1,12 +1,10 @@
 """Tensorboard image pairs: a render beside its ground truth every n steps."""
 from __future__ import annotations
 
-import math
-import time
-
 import lightning as L
 import torch
 
+from segs.callbacks.cadence import StepCadence
 from segs.modules.contract import GaussianMapper
 
 
@@ -15,21 +13,17 @@ class ImageLogger(L.Callback):
     due step that comes less than `min_interval_s` seconds after the previous image."""
 
     def __init__(self, every_n_steps: int = 500, min_interval_s: float = 0.0):
-        self.every_n_steps = every_n_steps
-        self.min_interval_s = min_interval_s
-        self._last = -math.inf  # the first due step logs
+        self.cadence = StepCadence(every_n_steps, min_interval_s)  # the first due step logs
 
     def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
-        if not self.every_n_steps or step % self.every_n_steps or trainer.logger is None:
+        if trainer.logger is None or not self.cadence.due(step):
             return
         experiment = getattr(trainer.logger, "experiment", None)
         kf = pl_module.first_view()
         if kf is None or experiment is None or not hasattr(experiment, "add_image"):
             return
-        if time.monotonic() - self._last < self.min_interval_s:
-            return
-        self._last = time.monotonic()
+        self.cadence.done()
         render = pl_module.render_image(kf.w2c, kf.camera, kf.kf_id)["image"]
         pair = torch.cat([render, kf.rgb()], dim=1).clamp(0, 1)
         experiment.add_image("render_vs_gt", pair.permute(2, 0, 1), global_step=step)
