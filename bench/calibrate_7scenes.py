@@ -12,7 +12,14 @@ centimetres to the side. Two measurements on the real frames, no calibration tar
    gradient under the depth edges is maximal at the right values (coarse grid, then a local
    search).
 
-3. with --self-calibration, instead: the focal length from the images alone, no ground truth
+3. with --lens, instead: the radial distortion k1 of the two lenses. (a) The edge score of 2. at the
+   reader's registration with the colour image and the raw depth each undistorted with a k1 (nearest
+   pixel for depth): equal k1 for both lenses against the colour lens alone. (b) The median Sampson
+   distance of RANSAC-consistent SIFT matches (bench/ate_diagnostics.py), undistorted with (f, k1),
+   under the ground truth's relative poses, per half of the frames (0-299, 300-599): pairs 10 and 30
+   frames apart, every 10 frames.
+
+4. with --self-calibration, instead: the focal length from the images alone, no ground truth
    (Mendonca and Cipolla's criterion): for frame pairs 20 and 40 frames apart, the fundamental
    matrix of their ORB matches (RANSAC at 1 px, then least squares on its inliers) makes an
    essential matrix K^T F K whose two non-zero singular values are equal at the true K; the mean
@@ -20,9 +27,11 @@ centimetres to the side. Two measurements on the real frames, no calibration tar
 
     python bench/calibrate_7scenes.py [--root ../shared/data/7scenes_redkitchen_0000_0599]
     python bench/calibrate_7scenes.py --self-calibration
+    python bench/calibrate_7scenes.py --lens
 
 Prints both searches and writes outputs/bench/calibrate_7scenes.json. The reader's defaults
-(segs.data.seven_scenes.COLOR_INTRINSICS, DEPTH_TO_COLOR) are the values this measured.
+(segs.data.seven_scenes.COLOR_INTRINSICS, DEPTH_TO_COLOR, COLOR_DISTORTION, DEPTH_DISTORTION) are the
+values this measured. Every measurement reads the frames as recorded (both lenses' distortion zero).
 """
 from __future__ import annotations
 
@@ -37,11 +46,12 @@ _harness.apply_process_settings()  # before torch loads
 import cv2
 import numpy as np
 
-from segs.data.seven_scenes import COLOR_INTRINSICS, SevenScenesSequence
+from segs.data.seven_scenes import COLOR_INTRINSICS, DEPTH_TO_COLOR, SevenScenesSequence
 from segs.slam.geometry import fundamental, sampson_distance
 
 ROOT = _harness.ROOT
 DEPTH_K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])  # the published (depth) intrinsics
+RAW = {"distortion": [0] * 4, "depth_distortion": [0] * 4}  # the images as recorded
 
 
 def gray(rgb: np.ndarray) -> np.ndarray:
@@ -99,15 +109,23 @@ def self_calibration(pairs, focals, cx: float = 323.0, cy: float = 240.0) -> dic
     return out
 
 
-def edge_frames(root: Path, step: int = 15) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(raw depth [H,W] m in the depth camera, colour gradient magnitude [H,W] normalised to mean 1)."""
-    seq = SevenScenesSequence(root, sensor="rgbd", intrinsics=[585, 585, 320, 240], depth_to_color=[0] * 6)
+def edge_frames(root: Path, step: int = 15, k_color: float = 0.0, k_depth: float = 0.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(depth [H,W] m in the depth camera, colour gradient magnitude [H,W] normalised to mean 1),
+    each image undistorted with its lens's k1 (the colour with COLOR_INTRINSICS's pinhole)."""
+    seq = SevenScenesSequence(root, sensor="rgbd", intrinsics=[585, 585, 320, 240], depth_to_color=[0] * 6, **RAW)
+    Kc = np.array([[COLOR_INTRINSICS[0], 0, COLOR_INTRINSICS[2]], [0, COLOR_INTRINSICS[1], COLOR_INTRINSICS[3]], [0, 0, 1]])
     out = []
     for i in range(0, len(seq), step):
         f = seq[i]
-        g = cv2.GaussianBlur(gray(f.rgb).astype(np.float32), (5, 5), 1.5)
+        rgb = cv2.undistort(f.rgb, Kc, np.array([k_color, 0, 0, 0.0])) if k_color else f.rgb
+        depth = f.depth
+        if k_depth:
+            maps = cv2.initUndistortRectifyMap(DEPTH_K, np.array([k_depth, 0, 0, 0.0]), None, DEPTH_K,
+                                               depth.shape[::-1], cv2.CV_32FC1)
+            depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST)
+        g = cv2.GaussianBlur(gray(rgb).astype(np.float32), (5, 5), 1.5)
         grad = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-        out.append((f.depth.astype(np.float32), grad / (grad.mean() + 1e-6)))
+        out.append((depth.astype(np.float32), grad / (grad.mean() + 1e-6)))
     return out
 
 
@@ -142,14 +160,67 @@ def registration_search(frames, f: float) -> dict:
     return {"unregistered_score": base, "score": best, "tx_m": round(tx, 4), "ty_m": round(ty, 4), "cx": cx, "cy": cy}
 
 
+def lens_edges(root: Path, ks: list[float]) -> dict:
+    """Edge score at the reader's registration per k1: both lenses undistorted alike, the colour alone."""
+    f, cx, cy = COLOR_INTRINSICS[0], COLOR_INTRINSICS[2], COLOR_INTRINSICS[3]
+    tx, ty = DEPTH_TO_COLOR[3], DEPTH_TO_COLOR[4]
+    both = {k: edge_score(edge_frames(root, k_color=k, k_depth=k), f, cx, cy, tx, ty) for k in ks}
+    colour = {k: edge_score(edge_frames(root, k_color=k), f, cx, cy, tx, ty) for k in ks if k}
+    return {"both_lenses": both, "colour_lens_only": colour}
+
+
+def lens_sampson(root: Path, focals: list[float], ks: list[float]) -> dict:
+    """Median over frame pairs of the median Sampson distance (px) of their consistent SIFT matches,
+    undistorted with (f, k1), under the ground truth's relative pose: {half: {f: {k1: px}}}."""
+    from ate_diagnostics import consistent_matches
+    from segs.slam.geometry import inv_se3
+
+    seq = SevenScenesSequence(root, sensor="mono", **RAW)
+    sift, pairs = cv2.SIFT_create(), []
+    for gap in (10, 30):
+        for i in range(0, len(seq) - gap, 10):
+            m = consistent_matches(gray(seq[i].rgb), gray(seq[i + gap].rgb), sift)
+            if m is not None:
+                pairs.append((i, i + gap, m[0], m[1]))
+    out = {}
+    for f in focals:
+        K = np.array([[f, 0, COLOR_INTRINSICS[2]], [0, f, COLOR_INTRINSICS[3]], [0, 0, 1.0]])
+        for k in ks:
+            halves: dict[str, list[float]] = {"0-299": [], "300-599": []}
+            for i, j, xi, xj in pairs:
+                u = [cv2.undistortPoints(x.reshape(-1, 1, 2), K, np.array([k, 0, 0, 0.0]), P=K).reshape(-1, 2) for x in (xi, xj)]
+                F = fundamental(inv_se3(seq.gt_poses[i]), inv_se3(seq.gt_poses[j]), K)
+                halves["0-299" if j < 300 else "300-599"].append(float(np.median(sampson_distance(F, *u))))
+            for h, v in halves.items():
+                out.setdefault(h, {}).setdefault(float(f), {})[float(k)] = float(np.median(v))
+    return {"pairs": len(pairs), "sampson_px": out}
+
+
+def lens(args) -> None:
+    ks = [0.0, -0.05, -0.1, -0.15]
+    edges = lens_edges(args.root, ks)
+    for k in ks:
+        alone = edges["colour_lens_only"].get(k)
+        print(f"k1 {k:+.2f}: edge score, both lenses {edges['both_lenses'][k]:.4f}"
+              + (f", colour lens alone {alone:.4f}" if alone is not None else ""))
+    samp = lens_sampson(args.root, [510, 525, 540, 555], ks + [-0.2])
+    for h, by_f in samp["sampson_px"].items():
+        for f, by_k in by_f.items():
+            print(f"frames {h}, f {f:.0f}: median Sampson (px) " + "  ".join(f"k1 {k:+.2f} {v:.3f}" for k, v in by_k.items()))
+    _harness.write_json(args.out.with_name("calibrate_7scenes_lens.json"), {"edge_score": edges, **samp})
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--root", type=Path, default=_harness.SEVEN_SCENES)
     p.add_argument("--focal", type=float, default=COLOR_INTRINSICS[0], help="focal length of the registration search")
     p.add_argument("--out", type=Path, default=_harness.OUTPUTS / "calibrate_7scenes.json")
     p.add_argument("--self-calibration", action="store_true", help="only the focal length from the images alone")
+    p.add_argument("--lens", action="store_true", help="only the lenses' radial distortion (edges, epipolar)")
     args = p.parse_args()
-    seq = SevenScenesSequence(args.root, sensor="mono", intrinsics=[585, 585, 320, 240])
+    if args.lens:
+        return lens(args)
+    seq = SevenScenesSequence(args.root, sensor="mono", intrinsics=[585, 585, 320, 240], **RAW)
     if args.self_calibration:
         pairs = epipolar_pairs(seq, step=15, gap=20) + epipolar_pairs(seq, step=15, gap=40)
         gap = self_calibration(pairs, list(range(450, 651, 15)))

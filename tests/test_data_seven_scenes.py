@@ -8,7 +8,7 @@ import pytest
 from segs.data.base import DepthRegistration
 from segs.data.export import write_seven_scenes
 from segs.data.frame import Camera
-from segs.data.seven_scenes import COLOR_INTRINSICS, DEPTH_TO_COLOR, SevenScenesSequence
+from segs.data.seven_scenes import COLOR_DISTORTION, COLOR_INTRINSICS, DEPTH_DISTORTION, DEPTH_TO_COLOR, SevenScenesSequence
 from segs.data.synthetic import SyntheticSequence
 from segs.data.tum import TumSequence
 from segs.errors import ConfigError, DataError
@@ -22,7 +22,8 @@ def synthetic():
 def _identity(seq) -> dict:
     """Reader options that read a folder written by write_seven_scenes back unchanged."""
     c = seq.camera
-    return {"intrinsics": [c.fx, c.fy, c.cx, c.cy], "depth_to_color": [0] * 6}
+    return {"intrinsics": [c.fx, c.fy, c.cx, c.cy], "depth_to_color": [0] * 6, "distortion": [0] * 4,
+            "depth_distortion": [0] * 4}
 
 
 def test_round_trip_of_a_sequence_folder(synthetic, tmp_path):
@@ -103,11 +104,37 @@ def test_registration_moves_depth_into_the_colour_camera():
     assert DepthRegistration([100, 100, 31.5, 23.5]).register(depth, depth_cam) is depth  # same camera
 
 
+def test_depth_lens_is_undistorted_before_the_registration():
+    """A point seen through a depth lens (cv2.projectPoints with k1, k2) lands, after
+    undistortion and registration into a pinhole colour camera 5 cm to the side, where the pinhole
+    projects it; without the lens model it lands off by the distortion."""
+    K = np.array([[100.0, 0, 63.5], [0, 100.0, 47.5], [0, 0, 1]])
+    lens = np.array([-0.2, 0.05, 0.0, 0.0])
+    point = np.array([[0.8, 0.6, 1.5]])  # depth camera, metres: near the image's corner (4 px of lens)
+    (u, v), = cv2.projectPoints(point, np.zeros(3), np.zeros(3), K, lens)[0].reshape(1, 2)
+    depth = np.zeros((96, 128), np.float32)
+    depth[int(round(v)) - 1:int(round(v)) + 2, int(round(u)) - 1:int(round(u)) + 2] = 1.5
+    color = Camera(100.0, 100.0, 63.5, 47.5, 128, 96)
+    x, y, z = point[0] - [0.05, 0, 0]  # colour = depth - 5 cm in x
+    want = np.array([63.5 + 100 * x / z, 47.5 + 100 * y / z])
+
+    def landed(reg):
+        rows, cols = np.nonzero(reg.register(depth, color))
+        return np.array([cols.mean(), rows.mean()])
+
+    assert np.abs(landed(DepthRegistration(K[[0, 1, 0, 1], [0, 1, 2, 2]], [0, 0, 0, -0.05, 0, 0],
+                                           depth_distortion=lens)) - want).max() < 1.5
+    assert np.abs(landed(DepthRegistration(K[[0, 1, 0, 1], [0, 1, 2, 2]], [0, 0, 0, -0.05, 0, 0])) - want).max() > 3.0
+    with pytest.raises(ConfigError, match="data.depth_distortion"):
+        DepthRegistration([100, 100, 31.5, 23.5], depth_distortion=[0.1])
+
+
 # ------------------------------------------------------------------ the real shared frames
 def test_native_and_tum_index_layouts_give_the_same_frames(seven_scenes_root):
     native = SevenScenesSequence(seven_scenes_root)
     tum = TumSequence(seven_scenes_root, intrinsics=list(COLOR_INTRINSICS), depth_scale=1000,
-                      depth_intrinsics=[585, 585, 320, 240], depth_to_color=list(DEPTH_TO_COLOR))
+                      depth_intrinsics=[585, 585, 320, 240], depth_to_color=list(DEPTH_TO_COLOR),
+                      distortion=list(COLOR_DISTORTION), depth_distortion=list(DEPTH_DISTORTION))
     assert len(native) == len(tum) == 600 and native.camera == tum.camera
     np.testing.assert_allclose(native.timestamps, tum.timestamps, atol=1e-6)
     np.testing.assert_allclose(native.gt_poses, tum.gt_poses, atol=1e-3)  # groundtruth.txt: 7 decimals
@@ -153,6 +180,18 @@ def test_calibrated_registration_aligns_depth_edges_with_colour_edges(seven_scen
     assert calibrated > 1.08 * published, (calibrated, published)
 
 
+def test_depth_and_colour_lenses_are_undistorted_alike(seven_scenes_root):
+    """Depth edges agree with colour edges when both lenses are undistorted alike (the default) as
+    well as with neither; undistorting the colour alone moves the colour edges off the depth's."""
+    frames = range(0, 600, 60)
+    default = _edge_agreement(SevenScenesSequence(seven_scenes_root), frames)
+    pinholes = _edge_agreement(SevenScenesSequence(seven_scenes_root, distortion=[0] * 4, depth_distortion=[0] * 4),
+                               frames)
+    colour_only = _edge_agreement(SevenScenesSequence(seven_scenes_root, depth_distortion=[0] * 4), frames)
+    assert default > 0.99 * pinholes and colour_only < 0.95 * default, (default, pinholes, colour_only)
+    assert np.any(np.array(COLOR_DISTORTION) != 0) and COLOR_DISTORTION == DEPTH_DISTORTION
+
+
 _FAULTS = """
 import resource, sys, threading
 from segs import process_settings
@@ -191,14 +230,17 @@ def test_frames_read_in_a_thread_reuse_freed_memory(seven_scenes_root):
 
 def test_colour_distortion_undistorts_colour_only(synthetic, tmp_path):
     """data.distortion remaps the colour (and the lossless reference) to the pinhole of the same
-    intrinsics, as cv2.undistort does; the depth and the poses stay; zeros change nothing."""
+    intrinsics, as cv2.undistort does; the depth and the poses stay; null is the measured lens."""
     root = write_seven_scenes(synthetic, tmp_path / "seq")
     plain = SevenScenesSequence(root, **_identity(synthetic))
-    zeros = SevenScenesSequence(root, distortion=[0, 0, 0, 0], **_identity(synthetic))
+    identity = {k: v for k, v in _identity(synthetic).items() if k != "distortion"}
+    measured = SevenScenesSequence(root, **identity)  # null: the reader's COLOR_DISTORTION
+    same = SevenScenesSequence(root, distortion=list(COLOR_DISTORTION), **identity)
     d = [-0.3, 0.1, 0.0, 0.0]
-    lens = SevenScenesSequence(root, distortion=d, **_identity(synthetic))
-    f, g, z = lens[2], plain[2], zeros[2]
-    np.testing.assert_array_equal(z.rgb, g.rgb)
+    lens = SevenScenesSequence(root, **{**_identity(synthetic), "distortion": d})
+    f, g = lens[2], plain[2]
+    np.testing.assert_array_equal(measured[2].rgb, same[2].rgb)
+    assert np.abs(measured[2].rgb - g.rgb).max() > 0.05
     K, inner = plain.native_camera.K, (slice(8, -8), slice(8, -8))  # borders: the remaps' edges differ
     err = np.abs(f.rgb - cv2.undistort(g.rgb, K, np.array(d)))[inner].mean()
     wrong = np.abs(f.rgb - cv2.undistort(g.rgb, K, -np.array(d)))[inner].mean()
@@ -207,4 +249,4 @@ def test_colour_distortion_undistorts_colour_only(synthetic, tmp_path):
     np.testing.assert_array_equal(f.depth, g.depth)
     np.testing.assert_allclose(f.pose_c2w, g.pose_c2w)
     with pytest.raises(ConfigError, match="data.distortion"):
-        SevenScenesSequence(root, distortion=[0.1, 0.2], **_identity(synthetic))
+        SevenScenesSequence(root, **{**_identity(synthetic), "distortion": [0.1, 0.2]})

@@ -76,12 +76,15 @@ class DepthRegistration:
 
     depth_intrinsics: [fx, fy, cx, cy] of the native depth image; depth_to_color: the rigid
     transform taking depth-camera coordinates to colour-camera coordinates, as 6 numbers
-    [rx, ry, rz, tx, ty, tz] (rotation vector in radians, translation in metres; null: identity).
+    [rx, ry, rz, tx, ty, tz] (rotation vector in radians, translation in metres; null: identity);
+    depth_distortion: the depth lens [k1, k2, p1, p2(, k3)] (OpenCV's model; null or zeros: a
+    pinhole), undistorted (nearest pixel) before the registration.
     Registration (cv2.registerDepth) back-projects every depth pixel, moves it into the colour
-    camera and keeps the nearest depth per colour pixel (0 where none lands).
+    camera and keeps the nearest depth per colour pixel (0 where none lands). The result is in the
+    colour camera's pinhole: a colour lens is the reader's to undistort, not this depth's.
     """
 
-    def __init__(self, depth_intrinsics, depth_to_color=None, key: str = "data"):
+    def __init__(self, depth_intrinsics, depth_to_color=None, key: str = "data", depth_distortion=None):
         fx, fy, cx, cy = pinhole(numbers(depth_intrinsics, (4,), f"{key}.depth_intrinsics"), f"{key}.depth_intrinsics")
         self.K_depth = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         self.T = np.eye(4)
@@ -89,9 +92,23 @@ class DepthRegistration:
         if v is not None:
             self.T[:3, :3] = cv2.Rodrigues(v[:3].reshape(3, 1))[0]
             self.T[:3, 3] = v[3:]
+        d = numbers(depth_distortion, (4, 5), f"{key}.depth_distortion")
+        self.depth_distortion = d if d is not None and np.any(d != 0) else None
+        self._maps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def undistort(self, depth: np.ndarray) -> np.ndarray:
+        """depth [H,W] float32 through the depth lens -> [H,W] of the depth pinhole (nearest pixel; 0 outside)."""
+        if self.depth_distortion is None:
+            return depth
+        h, w = depth.shape
+        if (h, w) not in self._maps:
+            self._maps[h, w] = cv2.initUndistortRectifyMap(self.K_depth, self.depth_distortion, None, self.K_depth,
+                                                           (w, h), cv2.CV_32FC1)
+        return cv2.remap(depth, *self._maps[h, w], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
 
     def register(self, depth: np.ndarray, color: Camera) -> np.ndarray:
         """depth [H,W] float32 metres (depth camera) -> [color.height, color.width] float32 (colour camera)."""
+        depth = self.undistort(depth)
         if np.array_equal(self.T, np.eye(4)) and np.array_equal(self.K_depth, color.K) \
                 and depth.shape == (color.height, color.width):
             return depth  # already registered (same camera)

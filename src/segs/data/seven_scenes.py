@@ -12,8 +12,9 @@ colour camera is a different camera: its intrinsics and its pose relative to the
 not published. Measured here (docs/data.md "7-Scenes calibration", bench/calibrate_7scenes.py) from
 the frames and the ground truth: COLOR_INTRINSICS and DEPTH_TO_COLOR below. The reader registers
 the depth into the colour camera (cv2.registerDepth) and gives colour-camera ground truth, so that
-`camera`, `depth` and `gt_poses` describe one camera, as in TUM RGB-D. No lens distortion unless
-`distortion` is given (the colour images are then undistorted on load, keeping the intrinsics).
+`camera`, `depth` and `gt_poses` describe one camera, as in TUM RGB-D. Both lenses are undistorted
+on load to the pinholes of their intrinsics (COLOR_DISTORTION, DEPTH_DISTORTION: measured, docs/data.md;
+docs/decisions/034-seven-scenes-lens-distortion.md).
 
 Lossless reference colour: a folder ``lossless_color*`` beside the sequence holding
 ``frame-XXXXXX.color.png`` copies of some frames (used to measure PSNR without JPEG artefacts)
@@ -38,6 +39,10 @@ DEPTH_INTRINSICS = (585.0, 585.0, 320.0, 240.0)  # published (camera-intrinsics.
 #: measured by bench/calibrate_7scenes.py on redkitchen frames 0-599 (docs/data.md)
 COLOR_INTRINSICS = (525.0, 525.0, 323.0, 240.0)
 DEPTH_TO_COLOR = (0.0, 0.0, 0.0, -0.035, -0.005, 0.0)
+#: colour and depth lens [k1, k2, p1, p2] (OpenCV), measured by bench/calibrate_7scenes.py --lens: the
+#: same radial distortion for both lenses (docs/decisions/034-seven-scenes-lens-distortion.md)
+COLOR_DISTORTION = (-0.1, 0.0, 0.0, 0.0)
+DEPTH_DISTORTION = (-0.1, 0.0, 0.0, 0.0)
 DEPTH_SCALE = 1000.0  # millimetres
 DEPTH_INVALID = 65535
 _COLOR = re.compile(r"^frame-(\d+)\.color\.(png|jpg)$")
@@ -102,7 +107,9 @@ class SevenScenesSequence(ReaderSequence):
             DEPTH_TO_COLOR, measured). With the depth intrinsics as colour intrinsics and zeros
             here, the depth is used unregistered (the published convention).
         distortion: colour lens [k1, k2, p1, p2(, k3)] (OpenCV); the colour images are undistorted
-            to the pinhole of `intrinsics` on load (default: none).
+            to the pinhole of `intrinsics` on load (default: COLOR_DISTORTION, measured; zeros: none).
+        depth_distortion: depth lens, the same model; the depth is undistorted to the pinhole of
+            `depth_intrinsics` before its registration (default: DEPTH_DISTORTION; zeros: none).
         depth_scale: depth PNG units per metre (1000: millimetres).
         fps: frame rate of the timestamps (frame number / fps).
     """
@@ -110,7 +117,7 @@ class SevenScenesSequence(ReaderSequence):
     def __init__(self, root: str | Path, sensor: str = "rgbd", sequence: str | int | None = None,
                  frames=None, downscale: float = 1, intrinsics=None, depth_intrinsics=None,
                  depth_to_color=None, depth_scale: float = DEPTH_SCALE, fps: float = 30.0,
-                 name: str | None = None, distortion=None):
+                 name: str | None = None, distortion=None, depth_distortion=None):
         self.root = require_dir(root, "7-Scenes folder")
         check_sensor(sensor, {"mono": None, "rgbd": None, "stereo": "7-Scenes has no stereo camera"}, self.root)
         if not float(fps) > 0:
@@ -133,7 +140,7 @@ class SevenScenesSequence(ReaderSequence):
                 raise DataError(f"{p}: depth image not found")
         self.timestamps = numbers_.astype(np.float64) / float(fps)
         pose_paths = [Path(f"{s}.pose.txt") for s in stem]
-        self._calibrate(intrinsics, depth_intrinsics, depth_to_color, downscale)
+        self._calibrate(intrinsics, depth_intrinsics, depth_to_color, depth_distortion, downscale)
         self._undistort_maps(distortion)
         self.gt_poses = None
         if any(p.is_file() for p in pose_paths):
@@ -152,7 +159,7 @@ class SevenScenesSequence(ReaderSequence):
                         out[pos[n]] = p
         return out
 
-    def _calibrate(self, intrinsics, depth_intrinsics, depth_to_color, downscale) -> None:
+    def _calibrate(self, intrinsics, depth_intrinsics, depth_to_color, depth_distortion, downscale) -> None:
         self.shape = image_shape(self.rgb_paths[0])
         k = numbers(intrinsics, (4,), "data.intrinsics")
         fx, fy, cx, cy = pinhole(k, "data.intrinsics") if k is not None else COLOR_INTRINSICS
@@ -160,14 +167,15 @@ class SevenScenesSequence(ReaderSequence):
         file = self.root / "camera-intrinsics.txt"
         if depth_intrinsics is None:
             depth_intrinsics = read_intrinsics(file) if file.is_file() else DEPTH_INTRINSICS
-        self.registration = DepthRegistration(depth_intrinsics, DEPTH_TO_COLOR if depth_to_color is None
-                                              else depth_to_color, "data")
+        self.registration = DepthRegistration(
+            depth_intrinsics, DEPTH_TO_COLOR if depth_to_color is None else depth_to_color, "data",
+            DEPTH_DISTORTION if depth_distortion is None else depth_distortion)
 
     def _undistort_maps(self, distortion) -> None:
-        """Remap tables from the colour lens [k1, k2, p1, p2(, k3)] (OpenCV's model) to the pinhole
-        of the same intrinsics; none for null or zeros. The registered depth is already that
-        pinhole's (cv2.registerDepth has no colour distortion), so only colour is remapped."""
-        d = numbers(distortion, (4, 5), "data.distortion")
+        """Remap tables from the colour lens [k1, k2, p1, p2(, k3)] (OpenCV's model; null: COLOR_DISTORTION)
+        to the pinhole of the same intrinsics; none for zeros. The registered depth is already that
+        pinhole's (cv2.registerDepth projects without a lens), so only colour is remapped."""
+        d = numbers(COLOR_DISTORTION if distortion is None else distortion, (4, 5), "data.distortion")
         self.distortion, self._maps = d, None
         if d is not None and np.any(d != 0):
             K = self.native_camera.K

@@ -87,6 +87,8 @@ class TumSequence(ReaderSequence):
             [rx, ry, rz, tx, ty, tz]; the depth is then registered into the colour camera and the
             ground truth, taken as the depth camera's, is moved to the colour camera
             (segs.data.base.DepthRegistration). Both null: depth used as is.
+        depth_distortion: the depth lens [k1, k2, p1, p2(, k3)] of unregistered depth (with
+            depth_intrinsics), undistorted before the registration (null: a pinhole).
     Attributes: dropped = colour frames left out for lack of a depth partner; frame timestamps
     are the rgb.txt timestamps; gt_poses [N,4,4] c2w (NaN where no ground truth) or None.
     """
@@ -95,7 +97,7 @@ class TumSequence(ReaderSequence):
                  intrinsics=None, distortion=None, freiburg: int | None = None,
                  max_difference: float = 0.02, gt_max_difference: float = 0.1,
                  depth_scale: float = DEPTH_SCALE, depth_intrinsics=None, depth_to_color=None,
-                 name: str | None = None):
+                 name: str | None = None, depth_distortion=None):
         self.root = require_dir(root, "TUM sequence folder")
         has_depth = (self.root / "depth.txt").is_file()
         check_sensor(sensor, {"mono": None, "rgbd": None if has_depth else "no depth.txt",
@@ -104,10 +106,11 @@ class TumSequence(ReaderSequence):
         self.depth_scale = float(depth_scale)
         self._index(float(max_difference))
         self.registration = None
-        if depth_intrinsics is not None or depth_to_color is not None:
+        if depth_intrinsics is not None or depth_to_color is not None or depth_distortion is not None:
             if depth_intrinsics is None:
-                raise ConfigError("data.depth_to_color needs data.depth_intrinsics (the depth camera's [fx, fy, cx, cy])")
-            self.registration = DepthRegistration(depth_intrinsics, depth_to_color, "data")
+                raise ConfigError("data.depth_to_color / data.depth_distortion need data.depth_intrinsics "
+                                  "(the depth camera's [fx, fy, cx, cy])")
+            self.registration = DepthRegistration(depth_intrinsics, depth_to_color, "data", depth_distortion)
         self._ground_truth(float(gt_max_difference))
         self._calibrate(intrinsics, distortion, freiburg, downscale)
 
@@ -173,9 +176,10 @@ class TumSequence(ReaderSequence):
         depth = None
         if self.depth_paths is not None:
             depth = read_depth(self.depth_paths[index], self.depth_scale, self.shape)
-            if self.registration is not None:
+            if self.registration is None:  # depth registered to the colour image, through its lens
+                depth = self._undistort(depth, cv2.INTER_NEAREST)
+            else:  # registered here into the colour camera's pinhole: no colour lens to undo
                 depth = self.registration.register(depth, self.native_camera)
-            depth = self._undistort(depth, cv2.INTER_NEAREST)
         path = self.rgb_paths[index]
         name = str(path.relative_to(self.root) if path.is_relative_to(self.root) else path)
         return Frame(index, float(self.timestamps[index]), rgb, self.native_camera, depth, None,
