@@ -165,6 +165,25 @@ def test_freiburg1_images_are_undistorted(tmp_path, synthetic):
     np.testing.assert_allclose(plain[0].rgb, raw)
 
 
+def test_depth_registered_by_the_reader_is_not_undistorted_again(tmp_path, synthetic):
+    """Depth from a separate depth camera is registered into the colour camera's pinhole, so the
+    colour lens's undistortion, which the colour image gets, must not move it again; the depth
+    lens (depth_distortion) is undone before the registration."""
+    folder = write_tum(synthetic, tmp_path / "rgbd_dataset_freiburg1_synth", frames=[0])
+    c = TumSequence(folder).camera
+    same_camera = {"depth_intrinsics": [c.fx, c.fy, c.cx, c.cy], "depth_to_color": [0] * 6}
+    lens, plain = TumSequence(folder, **same_camera), TumSequence(folder, distortion=[0] * 4, **same_camera)
+    assert np.abs(lens[0].rgb - plain[0].rgb).max() > 0.05  # the colour lens (freiburg1) is undone
+    np.testing.assert_array_equal(lens[0].depth, plain[0].depth)  # the depth, registered, is not
+    d = [-0.2, 0.0, 0.0, 0.0]
+    K = np.array([[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1.0]])
+    maps = cv2.initUndistortRectifyMap(K, np.array(d), None, K, (c.width, c.height), cv2.CV_32FC1)
+    want = cv2.remap(plain[0].depth, *maps, cv2.INTER_NEAREST)
+    np.testing.assert_array_equal(TumSequence(folder, depth_distortion=d, **same_camera)[0].depth, want)
+    with pytest.raises(ConfigError, match="depth_intrinsics"):
+        TumSequence(folder, depth_distortion=d)
+
+
 def test_unknown_camera_needs_intrinsics(tmp_path, synthetic):
     folder = write_tum(synthetic, tmp_path / "my_room", frames=[0, 1])
     with pytest.raises(DataError, match="freiburg"):
