@@ -46,6 +46,7 @@ _harness.apply_process_settings()  # before torch loads
 import cv2
 import numpy as np
 
+from segs.data.base import lens_maps, undistort
 from segs.data.seven_scenes import COLOR_INTRINSICS, DEPTH_TO_COLOR, SevenScenesSequence
 from segs.slam.geometry import fundamental, sampson_distance
 
@@ -109,23 +110,24 @@ def self_calibration(pairs, focals, cx: float = 323.0, cy: float = 240.0) -> dic
     return out
 
 
-def edge_frames(root: Path, step: int = 15, k_color: float = 0.0, k_depth: float = 0.0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(depth [H,W] m in the depth camera, colour gradient magnitude [H,W] normalised to mean 1),
-    each image undistorted with its lens's k1 (the colour with COLOR_INTRINSICS's pinhole)."""
+def raw_frames(root: Path, step: int = 15) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(raw depth [H,W] m in the depth camera, colour [H,W,3] as recorded) of every step-th frame."""
     seq = SevenScenesSequence(root, sensor="rgbd", intrinsics=[585, 585, 320, 240], depth_to_color=[0] * 6, **RAW)
+    return [(seq[i].depth.astype(np.float32), seq[i].rgb) for i in range(0, len(seq), step)]
+
+
+def edge_frames(raw, k_color: float = 0.0, k_depth: float = 0.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(depth [H,W] m in the depth camera, colour gradient magnitude [H,W] normalised to mean 1) of
+    raw_frames, each image undistorted with its lens's k1 (the colour to COLOR_INTRINSICS's pinhole)."""
+    size = raw[0][0].shape[::-1]
     Kc = np.array([[COLOR_INTRINSICS[0], 0, COLOR_INTRINSICS[2]], [0, COLOR_INTRINSICS[1], COLOR_INTRINSICS[3]], [0, 0, 1]])
+    color_maps = lens_maps(Kc, np.array([k_color, 0, 0, 0.0]), size)
+    depth_maps = lens_maps(DEPTH_K, np.array([k_depth, 0, 0, 0.0]), size)
     out = []
-    for i in range(0, len(seq), step):
-        f = seq[i]
-        rgb = cv2.undistort(f.rgb, Kc, np.array([k_color, 0, 0, 0.0])) if k_color else f.rgb
-        depth = f.depth
-        if k_depth:
-            maps = cv2.initUndistortRectifyMap(DEPTH_K, np.array([k_depth, 0, 0, 0.0]), None, DEPTH_K,
-                                               depth.shape[::-1], cv2.CV_32FC1)
-            depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST)
-        g = cv2.GaussianBlur(gray(rgb).astype(np.float32), (5, 5), 1.5)
+    for depth, rgb in raw:
+        g = cv2.GaussianBlur(gray(undistort(rgb, color_maps, cv2.INTER_LINEAR)).astype(np.float32), (5, 5), 1.5)
         grad = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-        out.append((depth.astype(np.float32), grad / (grad.mean() + 1e-6)))
+        out.append((undistort(depth, depth_maps, cv2.INTER_NEAREST), grad / (grad.mean() + 1e-6)))
     return out
 
 
@@ -163,9 +165,9 @@ def registration_search(frames, f: float) -> dict:
 def lens_edges(root: Path, ks: list[float]) -> dict:
     """Edge score at the reader's registration per k1: both lenses undistorted alike, the colour alone."""
     f, cx, cy = COLOR_INTRINSICS[0], COLOR_INTRINSICS[2], COLOR_INTRINSICS[3]
-    tx, ty = DEPTH_TO_COLOR[3], DEPTH_TO_COLOR[4]
-    both = {k: edge_score(edge_frames(root, k_color=k, k_depth=k), f, cx, cy, tx, ty) for k in ks}
-    colour = {k: edge_score(edge_frames(root, k_color=k), f, cx, cy, tx, ty) for k in ks if k}
+    tx, ty, raw = DEPTH_TO_COLOR[3], DEPTH_TO_COLOR[4], raw_frames(root)
+    both = {k: edge_score(edge_frames(raw, k_color=k, k_depth=k), f, cx, cy, tx, ty) for k in ks}
+    colour = {k: edge_score(edge_frames(raw, k_color=k), f, cx, cy, tx, ty) for k in ks if k}
     return {"both_lenses": both, "colour_lens_only": colour}
 
 
@@ -233,7 +235,7 @@ def main() -> None:
     for f, e in focal.items():
         print(f"focal {f:.0f}: median Sampson error {e:.3f} px")
     f_best = min(focal, key=focal.get)
-    reg = registration_search(edge_frames(args.root), args.focal)
+    reg = registration_search(edge_frames(raw_frames(args.root)), args.focal)
     print(f"depth -> colour at f={args.focal:.0f}: tx {reg['tx_m'] * 100:.1f} cm, ty {reg['ty_m'] * 100:.1f} cm, "
           f"cx {reg['cx']:.0f}, cy {reg['cy']:.0f}; edge score {reg['unregistered_score']:.3f} unregistered -> {reg['score']:.3f}")  # fmt: skip
     _harness.write_json(args.out, {"sampson_px_by_focal": focal, "sampson_best_focal": f_best, "registration_focal": args.focal, "registration": reg})

@@ -56,6 +56,21 @@ def pinhole(intrinsics: np.ndarray, key: str = "intrinsics") -> tuple[float, flo
     return fx, fy, cx, cy
 
 
+def lens_maps(K: np.ndarray, distortion: np.ndarray | None, size: tuple[int, int]):
+    """Remap tables ([H,W] float32 x, y) from a lens [k1, k2, p1, p2(, k3)] (OpenCV's model) to the
+    pinhole of the same K [3,3] at size (W, H); None for a pinhole lens (None or zeros)."""
+    if distortion is None or not np.any(distortion != 0):
+        return None
+    return cv2.initUndistortRectifyMap(K, distortion, None, K, size, cv2.CV_32FC1)
+
+
+def undistort(image: np.ndarray, maps, interpolation: int) -> np.ndarray:
+    """An image [H,W(,C)] through the lens of `maps` (lens_maps) -> the pinhole's; itself for None; 0 outside."""
+    if maps is None:
+        return image
+    return cv2.remap(image, *maps, interpolation, borderMode=cv2.BORDER_CONSTANT)
+
+
 def resize_frame(frame: Frame, camera: Camera) -> Frame:
     """The frame resized to camera's size: area for images, nearest for depth; camera replaced."""
     size = (camera.width, camera.height)
@@ -92,23 +107,14 @@ class DepthRegistration:
         if v is not None:
             self.T[:3, :3] = cv2.Rodrigues(v[:3].reshape(3, 1))[0]
             self.T[:3, 3] = v[3:]
-        d = numbers(depth_distortion, (4, 5), f"{key}.depth_distortion")
-        self.depth_distortion = d if d is not None and np.any(d != 0) else None
-        self._maps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-
-    def undistort(self, depth: np.ndarray) -> np.ndarray:
-        """depth [H,W] float32 through the depth lens -> [H,W] of the depth pinhole (nearest pixel; 0 outside)."""
-        if self.depth_distortion is None:
-            return depth
-        h, w = depth.shape
-        if (h, w) not in self._maps:
-            self._maps[h, w] = cv2.initUndistortRectifyMap(self.K_depth, self.depth_distortion, None, self.K_depth,
-                                                           (w, h), cv2.CV_32FC1)
-        return cv2.remap(depth, *self._maps[h, w], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        self.depth_distortion = numbers(depth_distortion, (4, 5), f"{key}.depth_distortion")
+        self._maps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}  # per depth (H, W)
 
     def register(self, depth: np.ndarray, color: Camera) -> np.ndarray:
         """depth [H,W] float32 metres (depth camera) -> [color.height, color.width] float32 (colour camera)."""
-        depth = self.undistort(depth)
+        if depth.shape not in self._maps:
+            self._maps[depth.shape] = lens_maps(self.K_depth, self.depth_distortion, depth.shape[::-1])
+        depth = undistort(depth, self._maps[depth.shape], cv2.INTER_NEAREST)
         if np.array_equal(self.T, np.eye(4)) and np.array_equal(self.K_depth, color.K) \
                 and depth.shape == (color.height, color.width):
             return depth  # already registered (same camera)

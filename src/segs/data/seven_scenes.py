@@ -28,7 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, frame_range, gt_pose, numbers, pinhole
+from segs.data.base import (DepthRegistration, ReaderSequence, check_sensor, frame_range, gt_pose, lens_maps, numbers,
+                             pinhole, undistort)
 from segs.data.files import image_shape, read_depth, read_numeric, read_rgb, require_dir
 from segs.data.frame import Camera, Frame
 from segs.data.poses import check_rigid
@@ -175,23 +176,14 @@ class SevenScenesSequence(ReaderSequence):
         """Remap tables from the colour lens [k1, k2, p1, p2(, k3)] (OpenCV's model; null: COLOR_DISTORTION)
         to the pinhole of the same intrinsics; none for zeros. The registered depth is already that
         pinhole's (cv2.registerDepth projects without a lens), so only colour is remapped."""
-        d = numbers(COLOR_DISTORTION if distortion is None else distortion, (4, 5), "data.distortion")
-        self.distortion, self._maps = d, None
-        if d is not None and np.any(d != 0):
-            K = self.native_camera.K
-            h, w = self.shape
-            self._maps = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
-
-    def _undistort(self, rgb: np.ndarray) -> np.ndarray:
-        if self._maps is None:
-            return rgb
-        return cv2.remap(rgb, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        self.distortion = numbers(COLOR_DISTORTION if distortion is None else distortion, (4, 5), "data.distortion")
+        self._maps = lens_maps(self.native_camera.K, self.distortion, self.shape[::-1])
 
     def __len__(self) -> int:
         return len(self.rgb_paths)
 
     def load(self, index: int) -> Frame:
-        rgb = self._undistort(read_rgb(self.rgb_paths[index], self.shape))
+        rgb = undistort(read_rgb(self.rgb_paths[index], self.shape), self._maps, cv2.INTER_LINEAR)
         depth = None
         if self.depth_paths is not None:
             depth = read_depth(self.depth_paths[index], self.depth_scale, self.shape)
@@ -205,7 +197,7 @@ class SevenScenesSequence(ReaderSequence):
         path = self.lossless.get(int(index))
         if path is None:
             return None
-        rgb = self._undistort(read_rgb(path, self.shape))
+        rgb = undistort(read_rgb(path, self.shape), self._maps, cv2.INTER_LINEAR)
         if self.camera != self.native_camera:
             rgb = cv2.resize(rgb, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
         return rgb

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, gt_pose, numbers, pinhole
+from segs.data.base import DepthRegistration, ReaderSequence, check_sensor, gt_pose, lens_maps, numbers, pinhole, undistort
 from segs.data.files import (check_files_exist, check_increasing, image_shape, read_depth,
                              read_numeric, read_rgb, read_timestamped_paths, require_dir)
 from segs.data.frame import Camera, Frame
@@ -158,26 +158,18 @@ class TumSequence(ReaderSequence):
         h, w = self.shape = image_shape(self.rgb_paths[0])
         self.distortion = d
         self.set_camera(Camera(fx, fy, cx, cy, w, h), downscale)
-        self._maps = None
-        if np.any(d != 0):
-            K = self.native_camera.K
-            self._maps = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
+        self._maps = lens_maps(self.native_camera.K, d, (w, h))
 
     def __len__(self) -> int:
         return len(self.timestamps)
 
-    def _undistort(self, img: np.ndarray, interpolation: int) -> np.ndarray:
-        if self._maps is None:
-            return img
-        return cv2.remap(img, *self._maps, interpolation, borderMode=cv2.BORDER_CONSTANT)
-
     def load(self, index: int) -> Frame:
-        rgb = self._undistort(read_rgb(self.rgb_paths[index], self.shape), cv2.INTER_LINEAR)
+        rgb = undistort(read_rgb(self.rgb_paths[index], self.shape), self._maps, cv2.INTER_LINEAR)
         depth = None
         if self.depth_paths is not None:
             depth = read_depth(self.depth_paths[index], self.depth_scale, self.shape)
             if self.registration is None:  # depth registered to the colour image, through its lens
-                depth = self._undistort(depth, cv2.INTER_NEAREST)
+                depth = undistort(depth, self._maps, cv2.INTER_NEAREST)
             else:  # registered here into the colour camera's pinhole: no colour lens to undo
                 depth = self.registration.register(depth, self.native_camera)
         path = self.rgb_paths[index]
