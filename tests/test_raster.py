@@ -269,6 +269,18 @@ def test_non_finite_values_are_rejected():
             rasterize(**args, backend="torch")
 
 
+def test_check_values_false_skips_only_the_read_of_the_values():
+    """The values' read (a wait on a GPU) is skipped; shapes, dtypes and devices are still checked."""
+    args = _args()
+    args["colors"] = args["colors"].clone()
+    args["colors"][0, 0] = float("nan")
+    out = rasterize(**args, backend="torch", check_values=False)
+    assert out.image.shape == (args["height"], args["width"], 3)
+    args["quats"] = args["quats"][:, :3]
+    with pytest.raises(ValueError, match="quats: expected shape"):
+        rasterize(**args, backend="torch", check_values=False)
+
+
 def test_bad_background_device_and_planes():
     args = _args()
     with pytest.raises(ValueError, match=r"background: expected shape \[3\]"):

@@ -87,9 +87,9 @@ def _resolutions(cfg, steps: int) -> list[tuple[int, int]]:
     seen = []
     render = module.render
 
-    def spy(view, step=None):
+    def spy(view, step=None, **kwargs):
         seen.append((view.camera.width, view.camera.height))
-        return render(view, step)
+        return render(view, step, **kwargs)
 
     module.render = spy
     trainer.fit(module, step_batches(steps))

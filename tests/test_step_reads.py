@@ -1,6 +1,7 @@
 """The training step reads back from the device only what Scaffold-GS's decoding needs (on a GPU
-each read waits for the device): the frustum and the opacity culls and the rasterizer's one input
-check. Counted on the CPU, where the same calls are made."""
+each read waits for the device): the frustum and the opacity culls, and on one step in LOSS_READ
+(none of those counted here) the rasterizer's check of the values. Counted on the CPU, where the
+same calls are made."""
 from __future__ import annotations
 
 import collections
@@ -28,7 +29,7 @@ class Reads(TorchFunctionMode):
         return func(*args, **(kwargs or {}))
 
 
-def test_a_training_step_reads_only_the_culls_and_the_check(tiny_cfg):
+def test_a_training_step_reads_only_the_culls(tiny_cfg):
     from segs.train import build, step_batches
 
     cfg = tiny_cfg("trainer.max_steps=60", "trainer.log_every_n_steps=1000", "callbacks.periodic_checkpoint.every_n_steps=0",
@@ -49,6 +50,6 @@ def test_a_training_step_reads_only_the_culls_and_the_check(tiny_cfg):
     # made once per pose), on the steps without densification
     plain = [s for step, s in enumerate(steps) if step >= 40 and step % module.model._interval()]
     assert len(plain) >= 15
-    expected = {("modules/anchors.py", "nonzero"): 2, ("raster/_checks.py", "tolist"): 1}
+    expected = {("modules/anchors.py", "nonzero"): 2}
     assert all(dict(s) == expected for s in plain), [dict(s) for s in plain if dict(s) != expected][:2]
     assert len(module.loss_history) == 60  # the losses, read in one batch

@@ -142,3 +142,53 @@ def test_the_logger_gets_the_step_scalars_every_log_every_n_steps(tiny_cfg, tmp_
     assert [s for s, _ in rows] == [9, 19, 29, 39]
     assert all({"train/psnr", "model/anchors", "train/iteration_ms"} <= set(m) for _, m in rows)
     assert logged_steps(0) == []  # 0: Lightning writes nothing, and the step does not divide by it
+
+
+def test_a_non_finite_map_stops_training_within_loss_read_steps(tiny_cfg, tmp_path, monkeypatch):
+    """The rasterizer reads the Gaussians back on one step in LOSS_READ (on a GPU each read is a
+    wait) and the losses are read back every LOSS_READ steps: a NaN written into the offsets at
+    step 30 (NaN means, culled by the rasterizer, whose NaN gradients make the decoders NaN, which
+    then drop every Gaussian) stops the run at the read after it, naming the first NaN loss."""
+    import lightning as L
+
+    from segs.modules import gaussian_mapper
+    from segs.train import build, step_batches
+
+    checked: list[int] = []
+    real = gaussian_mapper.rasterize
+
+    def spy(*args, check_values=True, **kwargs):
+        if check_values:
+            checked.append(module.global_step)
+        return real(*args, check_values=check_values, **kwargs)
+
+    class Poison(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            if trainer.global_step == 30:
+                with torch.no_grad():
+                    pl_module.model.field.rows["offsets"].fill_(float("nan"))
+
+    monkeypatch.setattr(gaussian_mapper, "rasterize", spy)
+    steps = gaussian_mapper.LOSS_READ + 20
+    cfg = tiny_cfg(f"trainer.max_steps={steps}", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false",
+                   out=tmp_path / "poison")  # fmt: skip
+    t = build(cfg)
+    module = t.module
+    t.trainer.callbacks.append(Poison())
+    with pytest.raises(FloatingPointError, match="^training step 3[01]: the loss is nan"):
+        t.trainer.fit(t.module, step_batches(steps))
+    assert checked == [0]
+    assert len(module.loss_history) == gaussian_mapper.LOSS_READ
+
+
+def test_the_progress_bar_shows_the_loss_and_the_gaussians_of_the_last_written_step(tiny_cfg, tmp_path):
+    from segs.callbacks import StepProgressBar
+    from segs.train import build, step_batches
+
+    cfg = tiny_cfg("trainer.max_steps=20", "trainer.log_every_n_steps=10", "callbacks.periodic_checkpoint.every_n_steps=0",
+                   "eval.enabled=false", out=tmp_path / "bar")  # fmt: skip
+    t = build(cfg)
+    t.trainer.fit(t.module, step_batches(20))
+    shown = StepProgressBar().get_metrics(t.trainer, t.module)
+    assert float(shown["loss"]) == pytest.approx(t.module.loss_history[19], rel=1e-3)
+    assert float(shown["gaussians"]) == t.module.model.counts()["gaussians"]

@@ -1,8 +1,9 @@
-"""Tensorboard image pairs: a render beside its ground truth every n steps."""
+"""Tensorboard image pairs (a render beside its ground truth every n steps) and the progress bar."""
 from __future__ import annotations
 
 import lightning as L
 import torch
+from lightning.pytorch.callbacks import TQDMProgressBar
 
 from segs.callbacks.cadence import StepCadence
 from segs.modules.contract import GaussianMapper
@@ -27,3 +28,12 @@ class ImageLogger(L.Callback):
         render = pl_module.render_image(kf.w2c, kf.camera, kf.kf_id)["image"]
         pair = torch.cat([render, kf.rgb()], dim=1).clamp(0, 1)
         experiment.add_image("render_vs_gt", pair.permute(2, 0, 1), global_step=step)
+
+
+class StepProgressBar(TQDMProgressBar):
+    """Lightning's tqdm bar, showing the mapper's `progress_values` (loss, Gaussians) beside its
+    own figures: the mapper sets them on the steps it writes to the loggers, without `self.log`."""
+
+    def get_metrics(self, trainer, pl_module) -> dict:
+        values = getattr(pl_module, "progress_values", {})
+        return {**super().get_metrics(trainer, pl_module), **{k: f"{v:.4g}" for k, v in values.items()}}

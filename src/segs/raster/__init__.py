@@ -62,6 +62,7 @@ def rasterize(
     near: float = 0.01,
     far: float = 100.0,
     backend: str = "auto",
+    check_values: bool = True,
 ) -> Render:
     """Render N Gaussians into a ``width`` x ``height`` image, differentiably.
 
@@ -71,7 +72,9 @@ def rasterize(
         opacities [N] in [0,1]; colors [N,3]; viewmat [4,4] world-to-camera; K [3,3] pinhole
         intrinsics; background [3] colour behind the Gaussians (default black);
         near, far: Gaussians with camera z outside [near, far] are culled;
-        backend: "auto", "cuda", "cpu" or "torch".
+        backend: "auto", "cuda", "cpu" or "torch";
+        check_values: also read the values back (finite entries, positive focal lengths): on a
+            GPU that read waits for the device, so a training loop may check only some steps.
 
     All tensors must share one float dtype (float32 or float64) and one device, with finite
     values; otherwise ValueError names the argument, its shape and the expected one.
@@ -82,7 +85,7 @@ def rasterize(
     contributions below 1/255 skipped, a pixel stops before its transmittance drops below 1e-4.
     """
     check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                 background, near, far)
+                 background, near, far, check_values)
     name = resolve(backend, means.device)
     if name == "cuda":
         out = _cuda_backend.rasterize(means, quats, scales, opacities, colors, viewmat, K,

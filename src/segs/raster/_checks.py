@@ -49,9 +49,10 @@ def _check_finite(tensors: dict[str, torch.Tensor], K: torch.Tensor) -> tuple[fl
 
 
 def check_inputs(
-    means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far
+    means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, check_values=True
 ) -> None:
-    """Validate the arguments of :func:`segs.raster.rasterize` (see there for shapes).
+    """Validate the arguments of :func:`segs.raster.rasterize` (see there for shapes); the
+    tensors' values (finite, K's focal lengths) only with check_values.
 
     Raises ValueError naming the offending argument, its shape and the expected one.
     """
@@ -79,16 +80,15 @@ def check_inputs(
             raise ValueError(f"{name}: expected device {means.device} like means, got {_describe(t)}")
         if t.dtype != means.dtype:
             raise ValueError(f"{name}: expected dtype {means.dtype} like means, got {_describe(t)}")
-    _check_camera(_check_finite(tensors, K), width, height, near, far)
+    _check_camera(_check_finite(tensors, K) if check_values else None, width, height, near, far)
 
 
-def _check_camera(focal: tuple[float, float], width, height, near, far) -> None:
+def _check_camera(focal: tuple[float, float] | None, width, height, near, far) -> None:
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise ValueError(f"{name}: expected a positive int, got {v!r}")
-    fx, fy = focal
-    if fx <= 0 or fy <= 0:
-        raise ValueError(f"K: expected positive focal lengths K[0,0], K[1,1], got {fx}, {fy}")
+    if focal is not None and min(focal) <= 0:
+        raise ValueError(f"K: expected positive focal lengths K[0,0], K[1,1], got {focal[0]}, {focal[1]}")
     for name, v in (("near", near), ("far", far)):
         if not isinstance(v, (int, float)) or not math.isfinite(v):
             raise ValueError(f"{name}: expected a finite float, got {v!r}")
