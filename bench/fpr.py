@@ -1,5 +1,5 @@
-"""FPR's multi-scale loss (segs.modules.fpr.pyramid_loss), eager against its torch.compile form
-(mapping.compile, the CUDA default): forward + backward per call, the values compared.
+"""FPR's multi-scale loss (segs.modules.fpr.pyramid_loss), eager (as training runs it on every
+device) against its torch.compile form: forward + backward per call, the values compared.
 
     python bench/fpr.py --device cuda                 # 640x480, the paper's protocol size
     python bench/fpr.py --device cpu --size 320 240
