@@ -36,4 +36,5 @@ class StepProgressBar(TQDMProgressBar):
 
     def get_metrics(self, trainer, pl_module) -> dict:
         values = getattr(pl_module, "progress_values", {})
-        return {**super().get_metrics(trainer, pl_module), **{k: f"{v:.4g}" for k, v in values.items()}}
+        shown = {k: int(v) if float(v).is_integer() else f"{v:.4g}" for k, v in values.items()}  # counts as integers
+        return {**super().get_metrics(trainer, pl_module), **shown}
