@@ -292,3 +292,17 @@ def test_afme_keeps_a_training_views_pose_vector_until_its_pose_object_changes()
     assert torch.equal(enc._pose(moved, kf_id=7), pose_vector(moved))  # a replaced pose: converted again
     assert torch.equal(enc(moved, 7), enc.embed(pose_vector(moved)))
     assert enc._pose(w2c, kf_id=None) is not first  # a novel view is not kept
+
+
+@pytest.mark.parametrize("kind", ["linear", "mlp"])
+def test_afme_of_a_view_equals_embed_of_its_pose_vector(kind):
+    """forward embeds the kept canonical pose vector without canonicalizing it again."""
+    from segs.modules.afme import pose_vector
+
+    torch.manual_seed(1)
+    enc = AppearanceEncoder(kind, dim=4)
+    enc.scene_extent = 2.5
+    q, _ = torch.linalg.qr(torch.randn(3, 3))
+    w2c = torch.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = q * torch.sign(torch.det(q)), torch.randn(3)
+    assert torch.allclose(enc(w2c, 3), enc.embed(pose_vector(w2c)), atol=1e-6)

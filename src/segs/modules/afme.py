@@ -74,7 +74,7 @@ class AppearanceEncoder(nn.Module):
             return None
         if self.kind == "ae":
             return self.table.weight[self._row(w2c, kf_id)]
-        return self.embed(self._pose(w2c, kf_id))
+        return self._embed_canonical(self._pose(w2c, kf_id))
 
     def _pose(self, w2c: torch.Tensor, kf_id: int | None) -> torch.Tensor:
         """pose_vector(w2c) [7], kept per training view while its pose tensor is the same object
@@ -89,7 +89,10 @@ class AppearanceEncoder(nn.Module):
 
     def embed(self, pose: torch.Tensor) -> torch.Tensor:
         """AfME on a pose vector [7] = [t, q wxyz] (canonicalized here) -> [A]."""
-        x = canonical_pose(pose[:3], pose[3:])
+        return self._embed_canonical(canonical_pose(pose[:3], pose[3:]))
+
+    def _embed_canonical(self, x: torch.Tensor) -> torch.Tensor:
+        """AfME on a canonical pose vector [7] (pose_vector's, q unit with w >= 0) -> [A]."""
         if self.kind == "mlp":
             x = torch.cat([x[:3] / max(self.scene_extent, 1e-6), x[3:]])
         return self.net(x)
