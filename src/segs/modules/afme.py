@@ -41,7 +41,7 @@ class AppearanceEncoder(nn.Module):
         if kind not in KINDS:
             raise ValueError(f"model.appearance.kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.dim = kind, (0 if kind == "none" else dim)
-        self._poses: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # kf_id -> (w2c, pose vector)
+        self._poses: dict[int, tuple[torch.Tensor, ...]] = {}  # kf_id -> (w2c, pose vector, its canonical_pose)
         self.scene_extent = 1.0
         if kind == "linear":
             self.net = nn.Linear(7, dim)
@@ -74,25 +74,31 @@ class AppearanceEncoder(nn.Module):
             return None
         if self.kind == "ae":
             return self.table.weight[self._row(w2c, kf_id)]
-        return self._embed_canonical(self._pose(w2c, kf_id))
+        return self._embed_canonical(self._kept(w2c, kf_id)[1])
 
-    def _pose(self, w2c: torch.Tensor, kf_id: int | None) -> torch.Tensor:
-        """pose_vector(w2c) [7], kept per training view while its pose tensor is the same object
-        (the mapper replaces it when the pose changes): a training step converts no rotation."""
+    def _kept(self, w2c: torch.Tensor, kf_id: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(pose_vector(w2c) [7], embed's input: its canonical_pose [7]), kept per training view
+        while its pose tensor is the same object (the mapper replaces it when the pose changes):
+        a training step converts no rotation and canonicalizes nothing."""
         hit = self._poses.get(kf_id) if kf_id is not None else None
         if hit is not None and hit[0] is w2c:
-            return hit[1]
+            return hit[1], hit[2]
         pose = pose_vector(w2c)
+        x = canonical_pose(pose[:3], pose[3:])
         if kf_id is not None:
-            self._poses[kf_id] = (w2c, pose)
-        return pose
+            self._poses[kf_id] = (w2c, pose, x)
+        return pose, x
+
+    def _pose(self, w2c: torch.Tensor, kf_id: int | None) -> torch.Tensor:
+        """pose_vector(w2c) [7], kept per training view (_kept)."""
+        return self._kept(w2c, kf_id)[0]
 
     def embed(self, pose: torch.Tensor) -> torch.Tensor:
         """AfME on a pose vector [7] = [t, q wxyz] (canonicalized here) -> [A]."""
         return self._embed_canonical(canonical_pose(pose[:3], pose[3:]))
 
     def _embed_canonical(self, x: torch.Tensor) -> torch.Tensor:
-        """AfME on a canonical pose vector [7] (pose_vector's, q unit with w >= 0) -> [A]."""
+        """AfME on a canonicalized pose vector [7] -> [A]."""
         if self.kind == "mlp":
             x = torch.cat([x[:3] / max(self.scene_extent, 1e-6), x[3:]])
         return self.net(x)
