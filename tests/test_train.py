@@ -192,3 +192,15 @@ def test_the_progress_bar_shows_the_loss_and_the_gaussians_of_the_last_written_s
     shown = StepProgressBar().get_metrics(t.trainer, t.module)
     assert float(shown["loss"]) == pytest.approx(t.module.loss_history[19], rel=1e-3)
     assert float(shown["gaussians"]) == t.module.model.counts()["gaussians"]
+
+
+def test_the_progress_bar_switched_off_needs_no_callback_removed(tmp_path):
+    """trainer.enable_progress_bar=false alone works: the bar's callback is left out (Lightning
+    refuses a progress-bar callback with the bar off)."""
+    from segs.config import compose
+    from segs.train import build
+
+    cfg = compose(["trainer.enable_progress_bar=false", "logger=none"], config_name="train", output_dir=str(tmp_path))
+    assert cfg.callbacks.progress_bar is not None
+    t = build(cfg)
+    assert t.trainer.progress_bar_callback is None

@@ -151,7 +151,8 @@ def build(cfg: DictConfig, session_start: float | None = None) -> TrainingRun:
     bridge: SlamBridge = instantiate(cfg.callbacks.slam_bridge)(run=state)
     # first: it takes the signals back from Lightning when training starts, before the bridge tracks
     interrupt = GracefulInterrupt(cfg.paths.output_dir)
-    callbacks = [interrupt, bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k != "slam_bridge" and c is not None]
+    skip = {"slam_bridge"} | (set() if cfg.trainer.get("enable_progress_bar", True) else {"progress_bar"})  # bar off: no bar callback
+    callbacks = [interrupt, bridge] + [instantiate(c) for k, c in cfg.callbacks.items() if k not in skip and c is not None]
     run_record = RunRecord(identity, started)
     callbacks.append(run_record)
     viewer = viewer_config(OmegaConf.to_container(cfg.viewer, resolve=True)) if "viewer" in cfg else None
