@@ -286,7 +286,7 @@ class GaussianMapperModule(L.LightningModule):
         read = torch.stack([v.detach().reshape(()).double() for v in on_device.values()]).cpu()
         values = dict(zip(on_device, read.tolist()))
         self.progress_values = {"loss": values["loss"], "gaussians": float(counts["gaussians"])}
-        metrics = {**values, "gaussians": float(counts["gaussians"]), "train/iteration_ms": self.iteration_ms[-1],
+        metrics = {**values, **self.progress_values, "train/iteration_ms": self.iteration_ms[-1],
                    "train/downscale": float(factor), "model/anchors": float(counts["anchors"]), "model/keyframes": float(len(self.views)),
                    **{f"densify/{k}": float(v) for k, v in edits.items()}}  # fmt: skip
         for logger in self.loggers:
