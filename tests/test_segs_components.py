@@ -285,13 +285,13 @@ def test_afme_keeps_a_training_views_pose_vector_until_its_pose_object_changes()
 
     enc = AppearanceEncoder("linear", dim=4)
     w2c = torch.eye(4)
-    first = enc._pose(w2c, kf_id=7)
-    assert enc._pose(w2c, kf_id=7) is first  # the same pose object: no conversion
+    first = enc._kept(w2c, kf_id=7)[0]
+    assert enc._kept(w2c, kf_id=7)[0] is first  # the same pose object: no conversion
     moved = torch.eye(4)
     moved[0, 3] = 0.5
-    assert torch.equal(enc._pose(moved, kf_id=7), pose_vector(moved))  # a replaced pose: converted again
+    assert torch.equal(enc._kept(moved, kf_id=7)[0], pose_vector(moved))  # a replaced pose: converted again
     assert torch.equal(enc(moved, 7), enc.embed(pose_vector(moved)))
-    assert enc._pose(w2c, kf_id=None) is not first  # a novel view is not kept
+    assert enc._kept(w2c, kf_id=None)[0] is not first  # a novel view is not kept
 
 
 @pytest.mark.parametrize("kind", ["linear", "mlp"])

@@ -89,10 +89,6 @@ class AppearanceEncoder(nn.Module):
             self._poses[kf_id] = (w2c, pose, x)
         return pose, x
 
-    def _pose(self, w2c: torch.Tensor, kf_id: int | None) -> torch.Tensor:
-        """pose_vector(w2c) [7], kept per training view (_kept)."""
-        return self._kept(w2c, kf_id)[0]
-
     def embed(self, pose: torch.Tensor) -> torch.Tensor:
         """AfME on a pose vector [7] = [t, q wxyz] (canonicalized here) -> [A]."""
         return self._embed_canonical(canonical_pose(pose[:3], pose[3:]))
