@@ -1,6 +1,7 @@
 """Every experiment, ablation and config group composes and instantiates its parts."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -65,6 +66,14 @@ def test_sample_data_and_frontends_instantiate(tmp_path):
 def test_out_of_range_values_are_rejected_naming_the_key(key, value, tmp_path):
     cfg = compose([f"{key}={value}"], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        validate(cfg)
+
+
+@pytest.mark.parametrize("key,value", [("trainer.max_steps", "abc"), ("trainer.max_steps", 1.5),
+                                       ("mapping.min_schedule_steps", "x"), ("mapping.num_downscales", "two")])  # fmt: skip
+def test_schedule_inputs_that_are_not_integers_are_named(key, value, tmp_path):
+    cfg = compose([f"{key}={value}"], output_dir=str(tmp_path))
+    with pytest.raises(ConfigError, match=re.escape(key) + "=.* is not an integer"):
         validate(cfg)
 
 

@@ -26,10 +26,22 @@ if not OmegaConf.has_resolver("segs_root"):
     OmegaConf.register_new_resolver("segs_root", lambda: str(REPO_ROOT))
 
 
+def _integer(value, key: str) -> int:
+    """value as an int; ValueError naming `key` when it is not a whole number (a resolver's input)."""
+    try:
+        number = float(value) if not isinstance(value, bool) else float("nan")
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not number.is_integer():
+        raise ValueError(f"{key}={value!r} is not an integer")
+    return int(number)
+
+
 def schedule_steps(max_steps: int, num_downscales: int, min_steps: int) -> int:
     """The schedules' length (model.total_steps): the run's trainer.max_steps, or
     mapping.min_schedule_steps when the run is coarse-to-fine (num_downscales > 0) and shorter."""
-    return max(int(max_steps), int(min_steps)) if int(num_downscales) > 0 else int(max_steps)
+    steps, min_steps = _integer(max_steps, "trainer.max_steps"), _integer(min_steps, "mapping.min_schedule_steps")
+    return max(steps, min_steps) if _integer(num_downscales, "mapping.num_downscales") > 0 else steps
 
 
 if not OmegaConf.has_resolver("segs_schedule"):
