@@ -29,10 +29,10 @@ if not OmegaConf.has_resolver("segs_root"):
 def _integer(value, key: str) -> int:
     """value as an int; ValueError naming `key` when it is not a whole number (a resolver's input)."""
     try:
-        number = float(value) if not isinstance(value, bool) else float("nan")
+        number = None if isinstance(value, bool) else float(value)
     except (TypeError, ValueError):
-        number = float("nan")
-    if not number.is_integer():
+        number = None
+    if number is None or not number.is_integer():
         raise ValueError(f"{key}={value!r} is not an integer")
     return int(number)
 
