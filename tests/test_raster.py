@@ -195,16 +195,19 @@ def test_no_gaussians_renders_the_background(backend):
 
 
 # -- semantics ----------------------------------------------------------------------------------
-def test_single_isotropic_gaussian_projects_like_a_pinhole():
+@pytest.mark.parametrize("backend,eps2d", [("torch", None), ("torch", 0.0), ("torch", 1.2),
+                                           pytest.param("cpu", 1.2, marks=needs_cpu)])
+def test_single_isotropic_gaussian_projects_like_a_pinhole(backend, eps2d):
     K = torch.tensor([[100.0, 0, 30], [0, 100.0, 20], [0, 0, 1]])
     viewmat = torch.eye(4)
     viewmat[:3, 3] = torch.tensor([0.0, 0.0, 1.5])  # camera 1.5 m behind the world origin
     means, quats = torch.tensor([[0.0, 0.0, 0.5]]), torch.tensor([[1.0, 0, 0, 0]])
     scales, op, col = torch.full((1, 3), 0.04), torch.tensor([0.8]), torch.tensor([[1.0, 0.5, 0.0]])
-    r = rasterize(means, quats, scales, op, col, viewmat, K, 64, 48, backend="torch")
+    low_pass = {} if eps2d is None else {"eps2d": eps2d}
+    r = rasterize(means, quats, scales, op, col, viewmat, K, 64, 48, backend=backend, **low_pass)
     torch.testing.assert_close(r.means2d, torch.tensor([[30.0, 20.0]]))
-    sigma2 = (100 * 0.04 / 2.0) ** 2 + 0.3  # EWA variance (px^2) plus the low-pass
-    assert r.radii.item() == math.ceil(3 * math.sqrt(sigma2))
+    sigma2 = (100 * 0.04 / 2.0) ** 2 + (0.3 if eps2d is None else eps2d)  # EWA variance (px^2) plus the low-pass
+    assert r.radii.item() == math.ceil(3 * math.sqrt(sigma2 + math.sqrt(0.1)))  # 3D-GS's eigenvalue floor
     y, x = 20, 30  # pixel (x, y) has centre (x + .5, y + .5)
     expected = 0.8 * math.exp(-0.5 * (0.25 + 0.25) / sigma2)
     assert abs(r.alpha[y, x].item() - expected) < 1e-5
@@ -258,6 +261,12 @@ def test_bad_input_is_a_value_error_naming_the_argument(name, value, words):
         rasterize(**args, backend="torch")
     for w in words:
         assert w in str(info.value), (w, str(info.value))
+
+
+@pytest.mark.parametrize("eps2d", [-0.1, float("nan"), float("inf")])
+def test_a_low_pass_that_is_not_a_finite_non_negative_number_is_refused(eps2d):
+    with pytest.raises(ValueError, match="eps2d"):
+        rasterize(**_args(), backend="torch", eps2d=eps2d)
 
 
 def test_non_finite_values_are_rejected():

@@ -79,12 +79,13 @@ def _projection_inputs(n=400, seed=3):
 
 
 @needs_cpu
-def test_cpp_projection_matches_torch_projection():
+@pytest.mark.parametrize("eps2d", [0.3, 1.2])
+def test_cpp_projection_matches_torch_projection(eps2d):
     means, quats, scales, viewmat, K = _projection_inputs()
     outs = {}
     for name, fn in (("cpu", _cpu_backend.project), ("torch", _projection.project)):
         params = [t.clone().requires_grad_(True) for t in (means, quats, scales)]
-        p = fn(*params, viewmat, K, 64, 48, 0.01, 100.0)
+        p = fn(*params, viewmat, K, 64, 48, 0.01, 100.0, eps2d)
         g = torch.Generator().manual_seed(0)
         w = [torch.randn(t.shape, generator=g) for t in (p.means2d, p.conics, p.depths)]
         loss = sum((wi * ti).sum() for wi, ti in zip(w, (p.means2d, p.conics, p.depths)))

@@ -69,13 +69,16 @@ def test_a_coarse_render_matches_the_block_mean_of_the_full_render():
 
 
 def test_bad_schedule_values_are_config_errors():
-    base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "min_schedule_steps": 0, "compile": False}
+    base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "min_schedule_steps": 0, "render_filter": "trained",
+            "compile": False}
     with pytest.raises(ConfigError, match="mapping.num_downscales"):
         mapping_config({**base, "num_downscales": -1, "downscale_phase": 0.1})
     with pytest.raises(ConfigError, match="mapping.downscale_phase"):
         mapping_config({**base, "num_downscales": 2, "downscale_phase": 0.6})
     with pytest.raises(ConfigError, match="mapping.min_schedule_steps"):
         mapping_config({**base, "num_downscales": 2, "downscale_phase": 0.25, "min_schedule_steps": -1})
+    with pytest.raises(ConfigError, match="mapping.render_filter='sharp'"):
+        mapping_config({**base, "num_downscales": 2, "downscale_phase": 0.25, "render_filter": "sharp"})
 
 
 def _resolutions(cfg, steps: int) -> list[tuple[int, int]]:
@@ -119,3 +122,40 @@ def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
                    "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")  # fmt: skip
     seen = _resolutions(cfg, 40)
     assert seen[:10] == [(24, 18)] * 10 and seen[10:20] == [(48, 36)] * 10 and seen[20:] == [(96, 72)] * 20
+
+
+@pytest.mark.parametrize("render_filter,eps2d", [("trained", 0.3 * 2**2), ("fixed", 0.3)])
+def test_renders_outside_training_see_the_pixels_the_map_was_trained_at(tiny_cfg, render_filter, eps2d):
+    """A run stopped in its 1/2-size phase renders at full size through 3D-GS's 0.3 px^2 filter of
+    those pixels (0.3 * 2^2 full-size px^2) with render_filter=trained; its checkpoint keeps the factor."""
+    cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25", "mapping.min_schedule_steps=80",
+                   f"mapping.render_filter={render_filter}", "eval.enabled=false")  # fmt: skip
+    from segs.train import build
+
+    module = build(cfg).module  # a fresh module: full size until a step or a checkpoint says otherwise
+    assert module.render_eps2d() == pytest.approx(0.3)
+    module.trained_factor = 2
+    ckpt: dict = {"state_dict": {f"model.{k}": v for k, v in module.model.state_dict().items()}}
+    module.on_save_checkpoint(ckpt)
+    restored = build(cfg).module
+    restored.on_load_checkpoint(ckpt)
+    assert restored.trained_factor == 2 and restored.render_eps2d() == pytest.approx(eps2d)
+    del ckpt["segs"]["trained_factor"]  # a checkpoint from before the factor was kept: full size
+    restored.on_load_checkpoint(ckpt)
+    assert restored.render_eps2d() == pytest.approx(0.3)
+
+
+def test_the_trained_factor_is_the_last_steps_and_sets_the_evaluation_filter(tiny_cfg):
+    cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25", "mapping.min_schedule_steps=80",
+                   "callbacks.periodic_checkpoint.every_n_steps=0", "eval.enabled=false")  # fmt: skip
+    from segs.train import build, step_batches
+
+    t = build(cfg)
+    t.trainer.fit(t.module, step_batches(40))
+    assert t.module.trained_factor == 2
+    seen = []
+    render = t.module.render
+    t.module.render = lambda view, step=None, **kw: seen.append(kw.get("eps2d")) or render(view, step, **kw)
+    kf = t.module.views.sample()
+    t.module.render_image(kf.w2c, kf.camera)
+    assert seen == [pytest.approx(1.2)]

@@ -28,7 +28,7 @@ from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.resolution import coarse_camera, coarse_depth, coarse_image, downscale_factor
 from segs.modules.scene_model import SceneModel, View, upgrade_state_keys
 from segs.modules.training_views import TrainingViews
-from segs.raster import rasterize
+from segs.raster import EPS2D, rasterize
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,8 @@ class GaussianMapperModule(L.LightningModule):
         self.min_scene_extent = mapping.min_scene_extent
         self.adam_eps = mapping.adam_eps
         self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
+        self.render_filter = mapping.render_filter
+        self.trained_factor = 1  # the image size divisor of the latest training step (render_image's filter)
         self.compile_mode = mapping.compile  # None: on a CUDA device (on_fit_start)
         self.compiled = False
         self.iteration_ms: list[float] = []
@@ -194,9 +196,10 @@ class GaussianMapperModule(L.LightningModule):
             self._device_K[key] = view.K.to(self.device)
         return self._device_K[key]
 
-    def render(self, view: View, step: int | None = None, check_values: bool = True):
+    def render(self, view: View, step: int | None = None, check_values: bool = True, eps2d: float = EPS2D):
         """Decode and rasterize one view; returns (rasterizer output, Decoded). check_values:
-        the rasterizer reads the Gaussians back for non-finite values (on a GPU, a wait)."""
+        the rasterizer reads the Gaussians back for non-finite values (on a GPU, a wait); eps2d:
+        the rasterizer's low-pass filter (pixels^2)."""
         if step is None:
             step = self.global_step if self._trainer is not None else self.restored_step
         decoded = self.model.decode(view, step)
@@ -204,7 +207,7 @@ class GaussianMapperModule(L.LightningModule):
         out = rasterize(
             decoded.means, decoded.quats, decoded.scales, decoded.opacities, decoded.colors,
             view.w2c.to(self.device), self._K(view), view.camera.width, view.camera.height,
-            background=self.background, near=r.near, far=r.far, backend=r.backend, check_values=check_values,
+            background=self.background, near=r.near, far=r.far, backend=r.backend, check_values=check_values, eps2d=eps2d,
         )  # fmt: skip
         self.raster_backend = out.backend
         return out, decoded
@@ -213,8 +216,15 @@ class GaussianMapperModule(L.LightningModule):
     def render_image(self, w2c: np.ndarray | torch.Tensor, camera, kf_id: int | None = None) -> dict:
         """Render at a pose (evaluation): {"image" [H,W,3], "depth" [H,W], "alpha" [H,W]} on CPU."""
         view = View(torch.as_tensor(w2c, dtype=torch.float32), camera, kf_id)
-        out, _ = self.render(view)
+        out, _ = self.render(view, eps2d=self.render_eps2d())
         return {"image": out.image.clamp(0, 1).cpu(), "depth": out.depth.cpu(), "alpha": out.alpha.cpu()}
+
+    def render_eps2d(self) -> float:
+        """The low-pass filter (pixels^2) of a full-size render (mapping.render_filter): with
+        "trained", 3D-GS's filter at the pixel size the map was last trained at, EPS2D * factor^2
+        (a map fitted at 1/2 size, through 0.3 px^2 of its pixels, is seen through 1.2 px^2 of
+        full-size ones); with "fixed", EPS2D."""
+        return EPS2D * self.trained_factor**2 if self.render_filter == "trained" else EPS2D
 
     # -- training -------------------------------------------------------------------------------
     def on_fit_start(self) -> None:
@@ -244,7 +254,7 @@ class GaussianMapperModule(L.LightningModule):
         opt = self.optimizers(use_pl_optimizer=False)
         step = self.global_step
         kf = self._on_device(self.views.sample())  # image, depth and pose already on the device
-        factor = self.resolution_factor(step)
+        factor = self.trained_factor = self.resolution_factor(step)
         view = View(kf.w2c, coarse_camera(kf.camera, factor), kf.kf_id)
         gt = coarse_image(kf.rgb(), factor)
         out, decoded = self.render(view, step, check_values=step % LOSS_READ == 0)  # and the losses: _read_losses
@@ -297,6 +307,7 @@ class GaussianMapperModule(L.LightningModule):
         checkpoint["segs"] = {
             "store": self.views.state_dict(),
             "scene_extent": self.model.scene_extent,
+            "trained_factor": self.trained_factor,
             "model": self.model.checkpoint_state(),  # e.g. SEGS's points waiting for min_new_points
             "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
         }
@@ -311,6 +322,7 @@ class GaussianMapperModule(L.LightningModule):
         if "store" in extra:
             self.views.load_state_dict(extra["store"])
         self.model.scene_extent = extra.get("scene_extent", self.model.scene_extent)
+        self.trained_factor = int(extra.get("trained_factor", 1))  # checkpoints before it: full size
         self.model.load_checkpoint_state(extra.get("model", {}))
         if "rng" in extra:
             torch.set_rng_state(extra["rng"]["torch"])

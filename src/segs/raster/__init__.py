@@ -12,6 +12,7 @@ package imports nothing else of segs.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -20,9 +21,10 @@ from . import _cpu_backend, _cuda_backend, _torch_backend
 from ._backends import BackendUnavailableError, available_backends, resolve
 from ._build import BuildError
 from ._checks import check_inputs
+from ._projection import EPS2D
 from ._ssim import fused_ssim, fused_ssim_available
 
-__all__ = ["Render", "rasterize", "available_backends", "BackendUnavailableError", "BuildError", "fused_ssim",
+__all__ = ["Render", "rasterize", "EPS2D", "available_backends", "BackendUnavailableError", "BuildError", "fused_ssim",
            "fused_ssim_available"]
 
 
@@ -63,6 +65,7 @@ def rasterize(
     far: float = 100.0,
     backend: str = "auto",
     check_values: bool = True,
+    eps2d: float = EPS2D,
 ) -> Render:
     """Render N Gaussians into a ``width`` x ``height`` image, differentiably.
 
@@ -74,25 +77,29 @@ def rasterize(
         near, far: Gaussians with camera z outside [near, far] are culled;
         backend: "auto", "cuda", "cpu" or "torch";
         check_values: also read the values back (finite entries, positive focal lengths): on a
-            GPU that read waits for the device, so a training loop may check only some steps.
+            GPU that read waits for the device, so a training loop may check only some steps;
+        eps2d: the low-pass filter, pixels^2 added to the diagonal of every 2D covariance (3D-GS's
+            0.3; larger values render the Gaussians as if seen through coarser pixels).
 
     All tensors must share one float dtype (float32 or float64) and one device, with finite
     values; otherwise ValueError names the argument, its shape and the expected one.
     Gradients reach means, quats, scales, opacities, colors and background from image, depth
     and alpha; viewmat too when it requires grad (the cpu backend then projects in PyTorch).
-    Semantics (3D-GS): EWA projection with a 0.3 px^2 low-pass,
+    Semantics (3D-GS): EWA projection with an eps2d px^2 low-pass,
     3-sigma extent, 16x16 tiles, front-to-back order by camera z, alpha = min(0.99, o exp(-s)),
     contributions below 1/255 skipped, a pixel stops before its transmittance drops below 1e-4.
     """
     check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
                  background, near, far, check_values)
+    if not (math.isfinite(eps2d) and eps2d >= 0):
+        raise ValueError(f"eps2d must be a finite number >= 0 (pixels^2), got {eps2d!r}")
     name = resolve(backend, means.device)
     if name == "cuda":
         out = _cuda_backend.rasterize(means, quats, scales, opacities, colors, viewmat, K,
-                                      width, height, background, near, far)
+                                      width, height, background, near, far, eps2d)
         return Render(*out, backend="cuda")
     impl = _cpu_backend if name == "cpu" else _torch_backend
-    proj = impl.project(means, quats, scales, viewmat, K, width, height, near, far)
+    proj = impl.project(means, quats, scales, viewmat, K, width, height, near, far, eps2d)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

@@ -10,7 +10,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from ._build import load_extension
-from ._projection import Projected
+from ._projection import EPS2D, Projected
 from ._projection import project as project_torch
 
 
@@ -26,7 +26,7 @@ class _ProjectCpu(torch.autograd.Function):
     """(means, quats, scales) -> (means2d, conics, depths, radii) for a fixed camera."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmat, K, width, height, near, far):
+    def forward(ctx, means, quats, scales, viewmat, K, width, height, near, far, eps2d):
         ext = load_extension()
         n = means.shape[0]
         means2d, conics = means.new_empty(n, 2), means.new_empty(n, 3)
@@ -34,11 +34,11 @@ class _ProjectCpu(torch.autograd.Function):
         radii = torch.empty(n, dtype=torch.int32)
         camera = (viewmat, K)
         ext.project_forward(
-            *[t.data_ptr() for t in (means, quats, scales, *camera)], n, width, height, near, far,
+            *[t.data_ptr() for t in (means, quats, scales, *camera)], n, width, height, near, far, eps2d,
             *[t.data_ptr() for t in (means2d, conics, depths, radii)], torch.get_num_threads(),
         )
         ctx.save_for_backward(means, quats, scales, viewmat, K)
-        ctx.args = (n, width, height, near, far)
+        ctx.args = (n, width, height, near, far, eps2d)
         ctx.mark_non_differentiable(radii)
         return means2d, conics, depths, radii
 
@@ -54,20 +54,20 @@ class _ProjectCpu(torch.autograd.Function):
             *[t.data_ptr() for t in inputs], *ctx.args, *[t.data_ptr() for t in grads_in],
             *[t.data_ptr() for t in out], torch.get_num_threads(),
         )
-        return (*out, None, None, None, None, None, None)
+        return (*out, None, None, None, None, None, None, None)
 
 
-def project(means, quats, scales, viewmat, K, width, height, near, far) -> Projected:
+def project(means, quats, scales, viewmat, K, width, height, near, far, eps2d: float = EPS2D) -> Projected:
     """Same contract as :func:`segs.raster._projection.project`, in C++ (float32).
 
     Falls back to the PyTorch projection when viewmat or K require gradients.
     """
     if viewmat.requires_grad or K.requires_grad:
-        return project_torch(means, quats, scales, viewmat, K, width, height, near, far)
+        return project_torch(means, quats, scales, viewmat, K, width, height, near, far, eps2d)
     dtype = means.dtype
     m2d, conics, depths, radii = _ProjectCpu.apply(
         _f32(means), _f32(quats), _f32(scales), _f32(viewmat), _f32(K),
-        width, height, float(near), float(far),
+        width, height, float(near), float(far), float(eps2d),
     )
     return Projected(m2d.to(dtype), conics.to(dtype), depths.to(dtype), radii)
 

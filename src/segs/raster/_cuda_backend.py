@@ -39,7 +39,7 @@ def _grad_proxy(means2d_b: torch.Tensor) -> torch.Tensor:
 
 
 def rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-              near, far):
+              near, far, eps2d):
     """Render with ``gsplat.rasterization``; returns (image, depth, alpha, means2d, radii).
 
     depth is gsplat's expected depth ("RGB+ED"); means2d is an [N,2] proxy whose ``.grad`` is
@@ -52,7 +52,7 @@ def rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height
     bgs = None if background is None else background.float()[None]
     rgbd, alphas, meta = rasterization(
         *f32, viewmats=viewmat.float()[None], Ks=K.float()[None], width=width, height=height,
-        near_plane=near, far_plane=far, eps2d=0.3, packed=False, tile_size=16,
+        near_plane=near, far_plane=far, eps2d=eps2d, packed=False, tile_size=16,
         backgrounds=bgs, render_mode="RGB+ED", rasterize_mode="classic",
     )
     means2d_b = meta["means2d"]  # [1,N,2]

@@ -2,7 +2,7 @@
 
 Shared by the ``torch`` and ``cpu`` backends; autograd provides its backward. Conventions follow
 gsplat / 3D-GS: world-to-camera ``viewmat``, wxyz quaternions (normalised here), pixel centres at
-``(x + 0.5, y + 0.5)``, covariance dilated by :data:`EPS2D` pixels^2, 3-sigma screen radius.
+``(x + 0.5, y + 0.5)``, covariance dilated by ``eps2d`` pixels^2 (default :data:`EPS2D`), 3-sigma screen radius.
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-EPS2D = 0.3  # low-pass filter added to the 2D covariance (pixels^2), as in 3D-GS
+EPS2D = 0.3  # default low-pass filter added to the 2D covariance (pixels^2), as in 3D-GS
 SIGMA_EXTENT = 3.0  # screen-space radius = ceil(3 * sqrt(largest eigenvalue))
 FOV_MARGIN = 0.3  # Jacobian clamp: 30 % of the half field of view beyond the image border
 
@@ -83,8 +83,10 @@ def project(
     height: int,
     near: float,
     far: float,
+    eps2d: float = EPS2D,
 ) -> Projected:
-    """Project Gaussians (means [N,3], quats [N,4], scales [N,3]) through viewmat [4,4], K [3,3].
+    """Project Gaussians (means [N,3], quats [N,4], scales [N,3]) through viewmat [4,4], K [3,3];
+    eps2d (pixels^2) is added to the diagonal of each 2D covariance (the low-pass filter).
 
     Gaussians with camera z outside [near, far], a degenerate 2D covariance or a footprint fully
     outside the image get radius 0; their other outputs are finite (never nan/inf) but unused.
@@ -99,7 +101,7 @@ def project(
     cov_cam = R @ covariances(quats, scales) @ R.T
     J = _jacobian(p_safe, K, width, height)
     cov2d = J @ cov_cam @ J.transpose(1, 2)
-    cov2d = cov2d + EPS2D * torch.eye(2, dtype=cov2d.dtype, device=cov2d.device)
+    cov2d = cov2d + eps2d * torch.eye(2, dtype=cov2d.dtype, device=cov2d.device)
     a, b, c = cov2d[:, 0, 0], 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0]), cov2d[:, 1, 1]
     det = a * c - b * b
     det_safe = torch.where(det > 0, det, torch.ones_like(det))

@@ -51,11 +51,11 @@ void backward(const State& st, std::uintptr_t g_image, std::uintptr_t g_depth,
 
 void project_forward(std::uintptr_t means, std::uintptr_t quats, std::uintptr_t scales,
                      std::uintptr_t viewmat, std::uintptr_t K, int n, int width, int height,
-                     float near, float far, std::uintptr_t means2d, std::uintptr_t conics,
+                     float near, float far, float eps2d, std::uintptr_t means2d, std::uintptr_t conics,
                      std::uintptr_t depths, std::uintptr_t radii, int threads) {
   segs_raster::ProjectIn in{ptr<const float>(means),   ptr<const float>(quats),
                             ptr<const float>(scales),  ptr<const float>(viewmat),
-                            ptr<const float>(K), n, width, height, near, far, {}};
+                            ptr<const float>(K), n, width, height, near, far, eps2d, {}};
   segs_raster::set_limits(in);
   segs_raster::ProjectOut out{ptr<float>(means2d), ptr<float>(conics), ptr<float>(depths),
                               ptr<int32_t>(radii)};
@@ -64,12 +64,12 @@ void project_forward(std::uintptr_t means, std::uintptr_t quats, std::uintptr_t 
 
 void project_backward(std::uintptr_t means, std::uintptr_t quats, std::uintptr_t scales,
                       std::uintptr_t viewmat, std::uintptr_t K, int n, int width, int height,
-                      float near, float far, std::uintptr_t g_means2d, std::uintptr_t g_conics,
+                      float near, float far, float eps2d, std::uintptr_t g_means2d, std::uintptr_t g_conics,
                       std::uintptr_t g_depths, std::uintptr_t out_means, std::uintptr_t out_quats,
                       std::uintptr_t out_scales, int threads) {
   segs_raster::ProjectIn in{ptr<const float>(means),   ptr<const float>(quats),
                             ptr<const float>(scales),  ptr<const float>(viewmat),
-                            ptr<const float>(K), n, width, height, near, far, {}};
+                            ptr<const float>(K), n, width, height, near, far, eps2d, {}};
   segs_raster::set_limits(in);
   segs_raster::ProjectGradIn g{ptr<const float>(g_means2d), ptr<const float>(g_conics),
                                ptr<const float>(g_depths)};

@@ -10,7 +10,6 @@
 namespace segs_raster {
 namespace {
 
-constexpr float EPS2D = 0.3f;
 constexpr float FOV_MARGIN = 0.3f;
 
 struct M3 {
@@ -75,9 +74,9 @@ void compute(const ProjectIn& in, int i, Proj& s) {
       JC[r][k] = s.J[r][0] * s.cov_c.m[0][k] + s.J[r][1] * s.cov_c.m[1][k] +
                  s.J[r][2] * s.cov_c.m[2][k];
   auto jcj = [&](int r, int k) { return JC[r][0] * s.J[k][0] + JC[r][1] * s.J[k][1] + JC[r][2] * s.J[k][2]; };
-  s.a = jcj(0, 0) + EPS2D;
+  s.a = jcj(0, 0) + in.eps2d;
   s.b = 0.5f * (jcj(0, 1) + jcj(1, 0));
-  s.c = jcj(1, 1) + EPS2D;
+  s.c = jcj(1, 1) + in.eps2d;
   s.det = s.a * s.c - s.b * s.b;
 }
 

@@ -13,6 +13,7 @@ struct ProjectIn {
   const float* K;        // [3,3] row-major
   int n, width, height;
   float near, far;
+  float eps2d;     // low-pass added to the 2D covariance's diagonal (pixels^2)
   float lim[4];  // filled by set_limits()
 };
 
