@@ -12,7 +12,6 @@ package imports nothing else of segs.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -90,9 +89,7 @@ def rasterize(
     contributions below 1/255 skipped, a pixel stops before its transmittance drops below 1e-4.
     """
     check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                 background, near, far, check_values)
-    if not (math.isfinite(eps2d) and eps2d >= 0):
-        raise ValueError(f"eps2d must be a finite number >= 0 (pixels^2), got {eps2d!r}")
+                 background, near, far, check_values, eps2d)
     name = resolve(backend, means.device)
     if name == "cuda":
         out = _cuda_backend.rasterize(means, quats, scales, opacities, colors, viewmat, K,

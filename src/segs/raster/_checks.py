@@ -9,6 +9,8 @@ import math
 
 import torch
 
+from ._projection import EPS2D
+
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
@@ -49,7 +51,7 @@ def _check_finite(tensors: dict[str, torch.Tensor], K: torch.Tensor) -> tuple[fl
 
 
 def check_inputs(
-    means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, check_values=True
+    means, quats, scales, opacities, colors, viewmat, K, width, height, background, near, far, check_values=True, eps2d=EPS2D
 ) -> None:
     """Validate the arguments of :func:`segs.raster.rasterize` (see there for shapes); the
     tensors' values (finite, K's focal lengths) only with check_values.
@@ -81,6 +83,8 @@ def check_inputs(
         if t.dtype != means.dtype:
             raise ValueError(f"{name}: expected dtype {means.dtype} like means, got {_describe(t)}")
     _check_camera(_check_finite(tensors, K) if check_values else None, width, height, near, far)
+    if not isinstance(eps2d, (int, float)) or not (math.isfinite(eps2d) and eps2d >= 0):
+        raise ValueError(f"eps2d: expected a finite float >= 0 (pixels^2), got {eps2d!r}")
 
 
 def _check_camera(focal: tuple[float, float] | None, width, height, near, far) -> None:
