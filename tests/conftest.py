@@ -36,6 +36,7 @@ TINY = [
     "slam.n_features=300",
     "eval.holdout_every=3",
     "eval.save_renders=2",
+    "eval.ply_fit_steps=20",
     "trainer.enable_progress_bar=false",
 ]
 

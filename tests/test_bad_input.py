@@ -189,7 +189,8 @@ def test_euroc_pair_without_baseline(tmp_path, capsys):
     ("raster.far=0.001", "raster.far"), ("mapping.view_budget=0", "mapping.view_budget"),
     ("trainer.precision=16", "trainer.precision"), ("model.voxel_size=inf", "model.voxel_size"),
     ("data.downscale=1000", "data.downscale"), ("raster.backend=cuda", "raster.backend"),
-    ("+eval.anything=1", "eval.anything: unknown key"), ("eval.write_ply=maybe", "eval.write_ply")])  # fmt: skip
+    ("+eval.anything=1", "eval.anything: unknown key"), ("eval.write_ply=maybe", "eval.write_ply"),
+    ("eval.ply_fit_steps=-1", "eval.ply_fit_steps")])  # fmt: skip
 def test_bad_values_are_refused_before_any_work(tmp_path, capsys, monkeypatch, override, key):
     from segs.pipeline.loop import FrameLoop
 

@@ -61,8 +61,14 @@ class RecordingMapper:
     def gaussians(self):
         return None
 
-    def export_ply(self, path):
+    def export_ply(self, path, cloud=None):
         return 0
+
+    def fitted_cloud(self, steps, progress=None):
+        return None
+
+    def render_cloud(self, gaussians, w2c, camera):
+        return torch.zeros(camera.height, camera.width, 3)
 
 
 class FakeFrontend:

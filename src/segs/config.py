@@ -103,6 +103,7 @@ _CHECKS: list[tuple[str, Callable[[object], bool], str]] = [
     ("ckpt_path", lambda v: v is None or isinstance(v, str), "null or a checkpoint file"),
     ("eval.holdout_every", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
     ("eval.save_renders", lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
+    ("eval.ply_fit_steps", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
     ("eval.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
     ("sensor.ate_align", lambda v: v in ALIGNMENTS, f"one of {', '.join(ALIGNMENTS)}"),
     ("eval.lpips_weights", lambda v: v is None or (isinstance(v, str) and Path(v).expanduser().is_file()),

@@ -27,6 +27,8 @@ class EvalConfig:
     """trajectory alignment of ATE: se3, sim3 (monocular) or none"""
     write_ply: bool
     """write point_cloud.ply (3D-GS layout)"""
+    ply_fit_steps: int
+    """steps fitting a per-view-decoded map's PLY to the training views as a 3D-GS viewer draws it (0: none)"""
     active_opacity: float
     """opacity above which a Gaussian counts as active (compactness figures)"""
     progress: bool

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from segs.callbacks.memory import peak_rss_mb
 from segs.eval_config import EvalConfig
 from segs.map_points import FILE_NAME as MAP_POINTS
-from segs.modules.contract import GaussianMapper
+from segs.modules.contract import GaussianCloud, GaussianMapper
 from segs.modules.metrics import make_lpips, psnr, ssim
 from segs.pipeline.run_state import RunState
 from segs.run_folder import write_json_atomic
@@ -75,6 +75,32 @@ def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: 
                     "psnr_jpeg_on_lossless_views": float(np.mean([r["psnr"] for r in clean])),
                     "psnr_jpeg_vs_lossless": float(np.mean([r["psnr_jpeg_vs_lossless"] for r in clean]))})
     return out
+
+
+def write_ply(module: GaussianMapper, path: Path, fit_steps: int, sequence, trajectory: dict, test: list[int],
+              progress: bool = True) -> dict:  # fmt: skip
+    """Write point_cloud.ply: for a map decoded per view (SEGS) its Gaussians fitted for fit_steps
+    steps to the training views (GaussianMapper.fitted_cloud), scored on the test views as a
+    standard 3D-GS renderer draws them; otherwise the model's own export, not scored.
+    Returns {"ply_gaussians": written, "ply_psnr": mean test-view PSNR or None}."""
+    with tqdm(total=fit_steps, desc="fitting the PLY", disable=not progress or fit_steps == 0, leave=False) as bar:
+        cloud = module.fitted_cloud(fit_steps, progress=lambda step: bar.update(1))
+    written = module.export_ply(path, cloud)
+    score = cloud_psnr(module, cloud, sequence, trajectory, test) if cloud is not None and test else None
+    return {"ply_gaussians": written, "ply_psnr": score}
+
+
+@torch.no_grad()
+def cloud_psnr(module: GaussianMapper, cloud: GaussianCloud, sequence, trajectory: dict, test: list[int]) -> float:
+    """Mean PSNR of the test frames `test` drawn from `cloud` at their estimated poses as a
+    standard 3D-GS renderer draws them (GaussianMapper.render_cloud)."""
+    gaussians = (cloud.means, cloud.quats, cloud.scales, cloud.opacities, cloud.colors)
+    scores = []
+    for idx in test:
+        frame = sequence[idx]
+        render = module.render_cloud(gaussians, trajectory[idx], frame.camera).clamp(0, 1).cpu()
+        scores.append(psnr(render, torch.from_numpy(np.ascontiguousarray(frame.rgb))))
+    return float(np.mean(scores))
 
 
 def run_summary(module: GaussianMapper, sequence, run: RunState, timing: dict) -> dict:
@@ -144,8 +170,9 @@ def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConf
     idx, c2w = estimated_c2w(trajectory)
     write_tum(out / "trajectory.txt", sequence.timestamps[idx], c2w)
     ate_result = frontend_ate(run, sequence.timestamps, trajectory, sequence.gt_poses, eval_cfg.ate_align)
+    ply = {"ply_gaussians": None, "ply_psnr": None}
     if eval_cfg.write_ply:
-        module.export_ply(out / "point_cloud.ply")
+        ply = write_ply(module, out / "point_cloud.ply", eval_cfg.ply_fit_steps, sequence, trajectory, test, eval_cfg.progress)
     run.map_points.write(out / MAP_POINTS)
     summary = run_summary(module, sequence, run, timing)
     metrics = {
@@ -153,6 +180,7 @@ def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConf
         "lpips_note": None if images["lpips"] is not None else "n/a: no AlexNet weights file (eval.lpips_weights)",
         "ate_rmse_m": ate_result["rmse"],
         "ate": ate_result,
+        **ply,
         **summary,
         **(notes or {}),
         "status": "finished",

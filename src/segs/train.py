@@ -236,8 +236,17 @@ def _print_summary(out: Path, m: dict) -> None:
         f"{m['anchors']} anchors, {m['model_mb']:.2f} MB\n"
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")
         + (f"  {m['checkpoint_note']}\n" if m.get("checkpoint_note") else "")
-        + f"  metrics.json, trajectory.txt, point_cloud.ply, renders/{', checkpoints/final.ckpt' if m.get('final_checkpoint') else ''}"
+        + _ply_line(m)
+        + f"  metrics.json, trajectory.txt, {'point_cloud.ply, ' if m.get('ply_gaussians') is not None else ''}renders/"
+        + (", checkpoints/final.ckpt" if m.get("final_checkpoint") else "")
     )
+
+
+def _ply_line(m: dict) -> str:
+    """The written PLY's size and, for a fitted one, its test-view PSNR; '' without a PLY or its score."""
+    if m.get("ply_psnr") is None:
+        return ""
+    return f"  point_cloud.ply: {m['ply_gaussians']} Gaussians, PSNR {m['ply_psnr']:.2f} dB on the test views as a 3D-GS viewer draws it\n"
 
 
 @hydra.main(config_path="../../conf", config_name="train", version_base="1.3")

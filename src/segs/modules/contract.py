@@ -6,6 +6,7 @@ frontend's numpy poses once, the mapper stores them as given.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -115,6 +116,16 @@ class GaussianMapper(Protocol):
         """Every Gaussian decoded as export_ply writes them, copied to the CPU (the viewer's
         snapshot); None before the first training view."""
 
-    def export_ply(self, path: str | Path) -> int:
-        """Write the Gaussians (decoded with the first view's direction) as a 3D-GS PLY; returns
-        their count (0 and no file without a training view)."""
+    def export_ply(self, path: str | Path, cloud: GaussianCloud | None = None) -> int:
+        """Write `cloud` (from fitted_cloud) or, without one, the model's own export (SEGS: decoded
+        with the first view's direction) as a 3D-GS PLY; returns the Gaussians written (0 and no
+        file without a training view)."""
+
+    def fitted_cloud(self, steps: int, progress: Callable[[int], None] | None = None) -> GaussianCloud | None:
+        """A model that decodes per view (SEGS): its Gaussians fitted for `steps` steps to the
+        training views as a standard 3D-GS renderer draws them; None for a model exported as it
+        is (plain 3D-GS) or before a training view."""
+
+    def render_cloud(self, gaussians: tuple[torch.Tensor, ...], w2c: np.ndarray | torch.Tensor, camera: Camera) -> torch.Tensor:
+        """[H,W,3], not clamped: Gaussians (means, unit quats, scales, opacities, colours) drawn at
+        w2c [4,4] as a standard 3D-GS renderer draws them."""

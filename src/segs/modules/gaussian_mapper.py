@@ -21,8 +21,10 @@ import numpy as np
 import torch
 
 from segs.errors import ConfigError
+from segs.modules.bake import refine_cloud
 from segs.modules.config import MappingConfig, RasterConfig
 from segs.modules.contract import GaussianCloud, MapCounts, TrainingView
+from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
 from segs.modules.metrics import psnr_tensor
 from segs.modules.optim import make_adam, set_learning_rates
 from segs.modules.resolution import coarse_camera, coarse_depth, coarse_image, downscale_factor
@@ -139,12 +141,36 @@ class GaussianMapperModule(L.LightningModule):
         cpu = lambda t: t.detach().to("cpu", torch.float32)  # noqa: E731
         return GaussianCloud(cpu(d.means), cpu(d.quats), cpu(d.scales), cpu(d.opacities), cpu(d.colors))
 
-    def export_ply(self, path) -> int:
-        """The map as a 3D-GS PLY, decoded with the first training view's direction and appearance."""
+    def export_ply(self, path, cloud: GaussianCloud | None = None) -> int:
+        """The map as a 3D-GS PLY: `cloud` (from `fitted_cloud`) when given, else the model's own
+        export (decoded with the first training view's direction and appearance)."""
+        if cloud is not None:
+            return write_gaussian_ply(path, cloud.means, cloud.quats, cloud.scales, cloud.opacities, rgb_to_sh_dc(cloud.colors))
         first = self.views.first()
         if first is None:
             return 0
         return self.model.export_ply(path, View(first.w2c, first.camera, first.kf_id))
+
+    def fitted_cloud(self, steps: int, progress=None) -> GaussianCloud | None:
+        """For a model that decodes its Gaussians per view (SEGS): `gaussians()` fitted for `steps`
+        steps to the training views as a standard 3D-GS renderer draws them (segs.modules.bake);
+        None for a model whose own parameters are its export (plain 3D-GS) or before a view.
+        progress(step) is called after every step."""
+        if not self.model.decodes_per_view or (cloud := self.gaussians()) is None:
+            return None
+        render = lambda gaussians, view: self.render_cloud(gaussians, view.w2c, view.camera)  # noqa: E731
+        return refine_cloud(cloud, self.training_views(), steps, render, self.model.scene_extent, self.device, progress=progress)
+
+    def render_cloud(self, gaussians: tuple[torch.Tensor, ...], w2c: np.ndarray | torch.Tensor, camera) -> torch.Tensor:
+        """[H,W,3] (not clamped, gradient kept): Gaussians (means [N,3], unit quats [N,4], scales [N,3],
+        opacities [N], colours [N,3]) drawn at w2c [4,4] as a standard 3D-GS renderer draws them
+        (full size, EPS2D), with this mapper's rasterizer settings."""
+        view = View(torch.as_tensor(w2c, dtype=torch.float32), camera)
+        r, dev = self.raster, self.device
+        means, quats, scales, opacities, colors = (t.to(dev) for t in gaussians)
+        out = rasterize(means, quats, scales, opacities, colors, view.w2c.to(dev), self._K(view), camera.width, camera.height,
+                        background=self.background, near=r.near, far=r.far, backend=r.backend, eps2d=EPS2D)  # fmt: skip
+        return out.image
 
     # -- helpers --------------------------------------------------------------------------------
     def _optimizer(self):

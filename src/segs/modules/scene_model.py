@@ -92,6 +92,10 @@ class SceneModel(nn.Module, abc.ABC):
     total_steps: int
     # whether loss() reads the keyframes' depth; without it the mapper keeps no depth image
     uses_depth: bool = False
+    # whether the Gaussians are decoded per view (opacity, shape, colour from the direction to the
+    # camera, frustum-culled): a PLY of one decoding then differs from the map, and the export is
+    # fitted to the views (GaussianMapperModule.fitted_cloud); plain 3D-GS writes its own parameters
+    decodes_per_view: bool = False
     # state-dict names of checkpoints written before the PrimitiveRows store: old -> new, a name
     # ending in "." renames every key under it (see upgrade_state_keys)
     LEGACY_STATE_KEYS: dict[str, str] = {}

@@ -27,6 +27,7 @@ from segs.modules.sepm import initial_log_scales, voxelize
 class SegsModel(SceneModel):
     """SEGS-SLAM's photorealistic map (see the module docstring for the parts)."""
 
+    decodes_per_view = True  # Scaffold-GS decoding (anchors.py): the PLY is fitted (modules/bake.py)
     LEGACY_STATE_KEYS = {"field.params.params.": "field.rows.", "field.xyz": "field.rows.xyz", "densifier.": "field.rows.",
                          "kf_tags": "field.rows.kf_tag"}  # fmt: skip
 
