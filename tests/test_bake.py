@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from plyfile import PlyData
 
 from segs.data.frame import Camera
@@ -15,6 +18,7 @@ from segs.modules.metrics import psnr
 from segs.modules.scene_model import View
 from segs.raster import rasterize
 
+ROOT = Path(__file__).resolve().parents[1]
 CAMERA = Camera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=64, height=48)
 
 
@@ -79,8 +83,8 @@ def test_fitting_drops_what_a_viewer_would_not_draw_and_zero_steps_change_nothin
 def test_a_segs_run_writes_the_fitted_ply_and_scores_it(tiny_cfg, tmp_path):
     from segs.train import run
 
-    metrics = run(tiny_cfg("trainer.max_steps=60", "eval.ply_fit_steps=150", "callbacks.periodic_checkpoint.every_n_steps=0",
-                           out=tmp_path / "fit"))  # fmt: skip
+    cfg = tiny_cfg("trainer.max_steps=60", "eval.ply_fit_steps=150", "callbacks.periodic_checkpoint.every_n_steps=0", out=tmp_path / "fit")
+    metrics = run(cfg)
     assert metrics["ply_gaussians"] == PlyData.read(str(tmp_path / "fit" / "point_cloud.ply"))["vertex"].count > 0
     assert json.loads((tmp_path / "fit" / "metrics.json").read_text())["ply_psnr"] == pytest.approx(metrics["ply_psnr"])
     # the same training, its first keyframe's decoding written as it is
@@ -88,6 +92,18 @@ def test_a_segs_run_writes_the_fitted_ply_and_scores_it(tiny_cfg, tmp_path):
                          out=tmp_path / "as_decoded"))  # fmt: skip
     assert metrics["ply_psnr"] > plain["ply_psnr"] + 1.5, (metrics["ply_psnr"], plain["ply_psnr"])
     assert metrics["psnr"] == pytest.approx(plain["psnr"], abs=0.5)  # the map itself: unchanged by the export
+    # bench/ply_fit.py on the run folder (its config where `python -m segs.train` has Hydra write it):
+    # the mapper rebuilt from the checkpoint writes the same PLYs
+    (tmp_path / "fit" / ".hydra").mkdir()
+    OmegaConf.save(cfg, tmp_path / "fit" / ".hydra" / "config.yaml")
+    sys.path.insert(0, str(ROOT / "bench"))
+    import ply_fit
+
+    assert ply_fit.main([str(tmp_path / "fit"), "--steps", "150", "0", "--out", str(tmp_path / "ply_fit.json")]) == 0
+    rows = json.loads((tmp_path / "ply_fit.json").read_text())["rows"]
+    assert [r["steps"] for r in rows] == [0, 150]
+    assert rows[0]["psnr"] == pytest.approx(plain["ply_psnr"], abs=0.01) and rows[0]["gaussians"] == plain["ply_gaussians"]
+    assert rows[1]["psnr"] == pytest.approx(metrics["ply_psnr"], abs=0.01) and rows[1]["gaussians"] == metrics["ply_gaussians"]
 
 
 def test_a_plain_3dgs_run_writes_its_own_parameters_unscored(tiny_cfg, tmp_path):
