@@ -4,6 +4,7 @@ the map of a training run grow. Tiny synthetic runs (tests/conftest.py TINY)."""
 from __future__ import annotations
 
 import io
+import os
 import re
 import shutil
 import socket
@@ -23,7 +24,7 @@ from segs.errors import ConfigError, DataError
 
 viser = pytest.importorskip("viser", reason='the viewer extra is not installed (pip install -e ".[viewer]")')
 
-from segs.viewer.saved_run import read_run  # noqa: E402
+from segs.viewer.saved_run import read_gaussian_ply, read_run  # noqa: E402
 from segs.viewer.scene import MIN_OPACITY, Splats  # noqa: E402
 from segs.viewer.server import choose_port  # noqa: E402
 
@@ -146,8 +147,22 @@ def test_an_interrupted_train_run_is_shown_from_its_last_checkpoint(train_run, t
     server, _ = _serve(cut)
     try:
         assert "/map/gaussians" in server.nodes and "/trajectory/estimated" in server.nodes
+        from_checkpoint = len(server.nodes["/map/gaussians"].buffer)
     finally:
         server.close()
+    # a PLY older than the checkpoint (a resumed run stopped again) is not what the map is now
+    from segs.view import load_mapper, snapshot
+
+    shutil.copy(train_run / "point_cloud.ply", cut / "point_cloud.ply")
+    os.utime(cut / "point_cloud.ply", (1.0, 1.0))
+    run = read_run(cut)
+    mapper = load_mapper(run)
+    shown, decoded = snapshot(run, mapper, None, None).splats, Splats.from_cloud(mapper.gaussians()).visible()
+    exported = read_gaussian_ply(cut / "point_cloud.ply").visible()
+    assert len(shown) == from_checkpoint == len(decoded) and np.array_equal(shown.colors, decoded.colors)
+    assert len(exported) != len(shown) or not np.allclose(exported.colors, shown.colors, atol=1e-3)
+    os.utime(cut / "point_cloud.ply")  # newer than the checkpoint: the PLY is shown
+    assert np.array_equal(snapshot(read_run(cut), mapper, None, None).splats.colors, exported.colors)
 
 
 @pytest.mark.slow

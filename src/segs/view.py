@@ -1,8 +1,9 @@
 """`python -m segs.view RUN_DIR [--host H] [--port P]`: a run folder in the web viewer.
 
 Any run folder of segs.train or segs.track, finished or interrupted: the Gaussians
-(point_cloud.ply, as the run exported them; without it, an interrupted run, decoded by the mapper
-rebuilt from checkpoints/final.ckpt, else last.ckpt, with the first keyframe's direction), the
+(point_cloud.ply, as the run exported them; without it or when a checkpoint is newer, an
+interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, with
+the first keyframe's direction), the
 SLAM map points (map_points.ply), the estimated trajectory (trajectory.txt or trajectory_partial.txt)
 beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
 its image and the render from its pose) and the run's numbers. Serves until Ctrl-C. Defaults of
@@ -65,8 +66,8 @@ def load_sequence(run: SavedRun):
 def snapshot(run: SavedRun, mapper, sequence, note: str | None) -> Snapshot:
     """Everything the run folder shows, as one snapshot."""
     splats = None
-    if run.ply is not None:  # what the run exported (SEGS: fitted to the views, eval.ply_fit_steps)
-        splats = read_gaussian_ply(run.ply).visible()
+    if run.ply is not None and (run.checkpoint is None or run.ply.stat().st_mtime >= run.checkpoint.stat().st_mtime):
+        splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
     elif mapper is not None and (cloud := mapper.gaussians()) is not None:
         splats = Splats.from_cloud(cloud).visible()
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
