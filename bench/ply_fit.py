@@ -42,13 +42,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"{args.run}: needs a checkpoint, the run's data, trajectory.txt and test_views.csv ({why or 'missing'})")
     if not mapper.model.decodes_per_view:
         sys.exit(f"{args.run}: the map is written as its own parameters (not SEGS): there is nothing to fit")
-    test = [int(line.split(",")[0]) for line in csv.read_text().splitlines()[1:]]
-    stamps, c2w = run.trajectory
-    trajectory = {}
-    for idx in test:
-        near = np.flatnonzero(np.abs(stamps - sequence.timestamps[idx]) < 1e-4)
-        trajectory[idx] = np.linalg.inv(c2w[near[0]])
-    model_psnr = float(np.mean([float(line.split(",")[1]) for line in csv.read_text().splitlines()[1:]]))
+    rows = [line.split(",") for line in csv.read_text().splitlines()[1:]]  # frame, psnr, ssim, lpips
+    test, model_psnr = [int(r[0]) for r in rows], float(np.mean([float(r[1]) for r in rows]))
+    trajectory = {idx: run.w2c_at(sequence.timestamps[idx]) for idx in test}
     rows = []
     for steps in sorted(args.steps):
         t0 = time.perf_counter()

@@ -3,9 +3,8 @@
 Any run folder of segs.train or segs.track, finished or interrupted: the Gaussians
 (point_cloud.ply, as the run exported them; without it or when a checkpoint is newer, an
 interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, with
-the first keyframe's direction), the
-SLAM map points (map_points.ply), the estimated trajectory (trajectory.txt or trajectory_partial.txt)
-beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
+the first keyframe's direction), the SLAM map points (map_points.ply), the estimated trajectory
+(trajectory.txt or trajectory_partial.txt) beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
 its image and the render from its pose) and the run's numbers. Serves until Ctrl-C. Defaults of
 --host / --port / --first-port: conf/viewer/on.yaml. A busy --port, a folder that is not a run:
 one line, exit 2.
@@ -88,13 +87,11 @@ def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
                 for v in mapper.training_views()]  # fmt: skip
     if sequence is None or run.trajectory is None or not run.keyframes:
         return []
-    stamps, c2w = run.trajectory
     out = []
     for kf_id, index in run.keyframes:
-        near = np.flatnonzero(np.abs(stamps - sequence.timestamps[index]) < 1e-4)
-        if len(near):
+        if (w2c := run.w2c_at(sequence.timestamps[index])) is not None:
             image = (np.clip(sequence[index].rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
-            out.append(KeyframeNode(kf_id, index, np.linalg.inv(c2w[near[0]]), sequence.camera, thumbnail(image)))
+            out.append(KeyframeNode(kf_id, index, w2c, sequence.camera, thumbnail(image)))
     return out
 
 

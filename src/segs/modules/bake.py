@@ -22,19 +22,14 @@ import torch
 import torch.nn.functional as F
 
 from segs.modules import losses
-from segs.modules.contract import GaussianCloud, TrainingView
+from segs.modules.contract import MIN_OPACITY, GaussianCloud, TrainingView
 
 LR_MEANS, LR_QUATS, LR_LOG_SCALES, LR_OPACITY, LR_COLOR = 1.6e-4, 1e-3, 5e-3, 5e-2, 3e-2
 LAMBDA_DSSIM = 0.2  # 3D-GS's photometric loss
-MIN_OPACITY = 1.0 / 255.0  # what a standard viewer skips: Gaussians below it are not written
 
 # (Gaussians as rasterize() takes them: means [N,3], unit quats [N,4], scales [N,3], opacities [N],
 # colours [N,3]; a training view) -> the rendered image [H,W,3]
 Render = Callable[[tuple[torch.Tensor, ...], TrainingView], torch.Tensor]
-
-
-def _logit(x: torch.Tensor) -> torch.Tensor:
-    return torch.logit(x.clamp(1e-4, 1.0 - 1e-4))
 
 
 def refine_cloud(cloud: GaussianCloud, views: Sequence[TrainingView], steps: int, render: Render, scene_extent: float,
@@ -51,8 +46,8 @@ def refine_cloud(cloud: GaussianCloud, views: Sequence[TrainingView], steps: int
         "means": cloud.means.to(device).clone(),
         "quats": cloud.quats.to(device).clone(),
         "log_scales": cloud.scales.to(device).clamp_min(1e-8).log(),
-        "opacities": _logit(cloud.opacities.to(device)),
-        "colors": _logit(cloud.colors.to(device)),
+        "opacities": torch.logit(cloud.opacities.to(device), eps=1e-4),
+        "colors": torch.logit(cloud.colors.to(device), eps=1e-4),
     }
     for p in params.values():
         p.requires_grad_(True)

@@ -56,6 +56,9 @@ class MapCounts:
     mb: float
 
 
+MIN_OPACITY = 1.0 / 255.0  # below it a Gaussian cannot change an 8-bit pixel: viewers skip it, the PLY's fit drops it
+
+
 @dataclass
 class GaussianCloud:
     """Every Gaussian of the map, on the CPU in float32, as `export_ply` writes them (decoded with

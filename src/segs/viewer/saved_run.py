@@ -42,6 +42,14 @@ class SavedRun:
     checkpoint: Path | None = None
     ply: Path | None = None
 
+    def w2c_at(self, timestamp: float) -> np.ndarray | None:
+        """[4,4] world-to-camera pose of the trajectory at `timestamp` (within 0.1 ms), or None."""
+        if self.trajectory is None:
+            return None
+        stamps, c2w = self.trajectory
+        near = np.flatnonzero(np.abs(stamps - timestamp) < 1e-4)
+        return np.linalg.inv(c2w[near[0]]) if len(near) else None
+
 
 def read_run(path: str | Path) -> SavedRun:
     """The run in `path`; DataError (one line) when it is not a run folder or holds nothing to show."""

@@ -12,10 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from segs.data.frame import Camera
-from segs.modules.contract import GaussianCloud
+from segs.modules.contract import MIN_OPACITY, GaussianCloud
 from segs.trajectory import alignment
-
-MIN_OPACITY = 1.0 / 255.0  # below it a Gaussian cannot change an 8-bit pixel
 
 
 @dataclass
