@@ -100,7 +100,10 @@ def test_a_segs_run_writes_the_fitted_ply_and_scores_it(tiny_cfg, tmp_path):
     import ply_fit
 
     assert ply_fit.main([str(tmp_path / "fit"), "--steps", "150", "0", "--out", str(tmp_path / "ply_fit.json")]) == 0
-    rows = json.loads((tmp_path / "ply_fit.json").read_text())["rows"]
+    written = json.loads((tmp_path / "ply_fit.json").read_text())
+    rows = written["rows"]
+    # segs's own viewer, decoded for each test camera, draws what the map renders there
+    assert written["camera_psnr"] == pytest.approx(metrics["psnr"], abs=0.2), (written["camera_psnr"], metrics["psnr"])
     assert [r["steps"] for r in rows] == [0, 150]
     assert rows[0]["psnr"] == pytest.approx(plain["ply_psnr"], abs=0.01) and rows[0]["gaussians"] == plain["ply_gaussians"]
     assert rows[1]["psnr"] == pytest.approx(metrics["ply_psnr"], abs=0.01) and rows[1]["gaussians"] == metrics["ply_gaussians"]

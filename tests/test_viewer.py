@@ -62,7 +62,7 @@ def track_run(tmp_path_factory) -> Path:
 def _serve(run_dir: Path):
     from segs.view import serve
 
-    server, provider = serve(run_dir, "127.0.0.1", None, _free_port())
+    server, provider, _ = serve(run_dir, "127.0.0.1", None, _free_port())
     assert server.wait_idle(timeout=30)
     return server, provider
 
@@ -254,6 +254,12 @@ def test_a_browser_shows_the_map_growing_during_training(tmp_path):
                 shots[step] = _pixels(page.screenshot())
                 text = page.inner_text("body")
                 assert f"Gaussians\t{seen[step]}\n" in text or f"Gaussians {seen[step]}" in " ".join(text.split()), text
+                if step == stops[-1]:  # the browser's camera, where the first snapshot put it, read back
+                    camera, framed = viewer.server.browser_camera(), viewer.server.framed
+                    c2w, forward = np.linalg.inv(camera.w2c), framed.look_at - framed.position
+                    np.testing.assert_allclose(c2w[:3, 3], framed.position, atol=1e-3 * framed.extent)
+                    assert c2w[:3, 2] @ forward / np.linalg.norm(forward) > 0.999
+                    assert "decoded for this camera's view" in " ".join(text.split())
                 go_on[step].set()
             browser.close()
     finally:

@@ -2,8 +2,9 @@
 
 Any run folder of segs.train or segs.track, finished or interrupted: the Gaussians
 (point_cloud.ply, as the run exported them; without it or when a checkpoint is newer, an
-interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, with
-the first keyframe's direction), the SLAM map points (map_points.ply), the estimated trajectory
+interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, for
+the browser's camera: what a render from there draws, decoded again when the camera has moved
+and settled), the SLAM map points (map_points.ply), the estimated trajectory
 (trajectory.txt or trajectory_partial.txt) beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
 its image and the render from its pose) and the run's numbers. Serves until Ctrl-C. Defaults of
 --host / --port / --first-port: conf/viewer/on.yaml. A busy --port, a folder that is not a run:
@@ -28,7 +29,7 @@ from omegaconf import OmegaConf
 from segs.config import CONF_DIR, make_sequence, user_errors_exit
 from segs.errors import UserInputError
 from segs.viewer.saved_run import SavedRun, read_gaussian_ply, read_run
-from segs.viewer.scene import KeyframeNode, Snapshot, Splats, Trajectories, thumbnail
+from segs.viewer.scene import SETTLE_S, BrowserCamera, KeyframeNode, Snapshot, Splats, Trajectories, decoded_for, thumbnail
 
 log = logging.getLogger("segs.view")
 
@@ -62,21 +63,28 @@ def load_sequence(run: SavedRun):
         return None, f"the run's data cannot be read ({' '.join(str(err).split())[:100]})"
 
 
-def snapshot(run: SavedRun, mapper, sequence, note: str | None) -> Snapshot:
-    """Everything the run folder shows, as one snapshot."""
+def shows_ply(run: SavedRun) -> bool:
+    """Whether the viewer shows the run's point_cloud.ply (not older than its checkpoint)."""
+    return run.ply is not None and (run.checkpoint is None or run.ply.stat().st_mtime >= run.checkpoint.stat().st_mtime)
+
+
+def snapshot(run: SavedRun, mapper, sequence, note: str | None, camera: BrowserCamera | None = None, splats_id: int = 1) -> Snapshot:
+    """Everything the run folder shows, as one snapshot; the checkpoint's Gaussians decoded for
+    `camera` (without one: every Gaussian, for the first keyframe), numbered splats_id."""
     splats = None
-    if run.ply is not None and (run.checkpoint is None or run.ply.stat().st_mtime >= run.checkpoint.stat().st_mtime):
+    if shows_ply(run):
         splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
-    elif mapper is not None and (cloud := mapper.gaussians()) is not None:
-        splats = Splats.from_cloud(cloud).visible()
+    elif mapper is not None:
+        cloud = mapper.gaussians() if camera is None else mapper.gaussians(camera.w2c, camera.camera)
+        splats = Splats.from_cloud(cloud).visible() if cloud is not None else None
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
     trajs = None
     if run.trajectory is not None:
         gt = (np.asarray(sequence.timestamps), sequence.gt_poses) if sequence is not None else (None, None)
         trajs = Trajectories(run.trajectory[0], run.trajectory[1], gt[0], gt[1], align)
     points = run.points or (None, None)
-    return Snapshot(splats=splats, splats_id=1, points=points[0], point_colors=points[1], trajectories=trajs,
-                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, splats, note))  # fmt: skip
+    return Snapshot(splats=splats, splats_id=splats_id, points=points[0], point_colors=points[1], trajectories=trajs,
+                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, splats, note, camera))  # fmt: skip
 
 
 def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
@@ -95,7 +103,7 @@ def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
     return out
 
 
-def panel(run: SavedRun, mapper, splats, note: str | None) -> dict[str, str]:
+def panel(run: SavedRun, mapper, splats, note: str | None, camera: BrowserCamera | None = None) -> dict[str, str]:
     r = run.results
     fmt = lambda key, spec, unit="": "n/a" if r.get(key) is None else f"{r[key]:{spec}}{unit}"  # noqa: E731
     rows = {"run": f"{run.kind} ({run.status.replace('_', ' ')}): {run.path.name}"}
@@ -105,7 +113,8 @@ def panel(run: SavedRun, mapper, splats, note: str | None) -> dict[str, str]:
         rows["test PSNR so far"] = f"{fmt('psnr', '.2f', ' dB')} ({r.get('test_views', 0)} test views)" if r else "n/a (not evaluated)"
         rows["anchors"] = str(counts.anchors if counts else r.get("anchors", "n/a"))
         rows["Gaussians"] = str(counts.gaussians if counts else r.get("gaussians", "n/a"))
-        rows["Gaussians drawn (opacity >= 1/255)"] = str(len(splats) if splats is not None else 0)
+        shown = "point_cloud.ply" if shows_ply(run) else decoded_for(camera) if mapper is not None else "none"
+        rows["Gaussians drawn (opacity >= 1/255)"] = f"{len(splats) if splats is not None else 0} ({shown})"
         rows["training"] = fmt("iterations_per_s", ".1f", " steps/s")
     else:
         rows["Gaussians"] = "0 (tracking only)"
@@ -139,9 +148,30 @@ def provider(run: SavedRun, mapper, sequence):
     return show
 
 
+class CameraFollower:
+    """Decodes the checkpoint's Gaussians again for the browser's camera once it has moved and
+    settled (a run shown from its checkpoint; its PLY, when shown, is the same from everywhere)."""
+
+    def __init__(self, server, run: SavedRun, mapper, sequence, note: str | None):
+        self.server, self.args = server, (run, mapper, sequence, note)
+        self.active = mapper is not None and not shows_ply(run)
+        self.decoded_at = 0.0  # when the camera last decoded for had moved
+        self.snapshots = 1  # submitted so far (serve's first one included)
+
+    def __call__(self) -> bool:
+        """Submit a new snapshot if the camera moved and settled; returns whether one was."""
+        camera = self.server.browser_camera() if self.active else None
+        if camera is None or camera.moved_at <= self.decoded_at or time.time() - camera.moved_at < SETTLE_S:
+            return False
+        self.decoded_at, self.snapshots = camera.moved_at, self.snapshots + 1
+        self.server.submit(snapshot(*self.args, camera=camera, splats_id=self.snapshots))
+        return True
+
+
 def serve(run_dir: str | Path, host: str, port: int | None, first_port: int):
-    """Start serving the run: (server, selection provider); the caller answers selections.
-    The folder and the port are checked first, before the checkpoint and the data are read."""
+    """Start serving the run: (server, selection provider, camera follower); the caller answers
+    selections and calls the follower. The folder and the port are checked first, before the
+    checkpoint and the data are read."""
     from segs.viewer.config import viewer_config
     from segs.viewer.live import start_server
 
@@ -155,7 +185,7 @@ def serve(run_dir: str | Path, host: str, port: int | None, first_port: int):
     except BaseException:
         server.close()
         raise
-    return server, provider(run, mapper, sequence)
+    return server, provider(run, mapper, sequence), CameraFollower(server, run, mapper, sequence, note)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -169,10 +199,11 @@ def main(argv: list[str] | None = None) -> None:
                         help=f"the first port tried without --port (default {defaults.first_port})")
     args = parser.parse_args(argv)
     with user_errors_exit():
-        server, answer = serve(args.run_dir, args.host, args.port, args.first_port)
+        server, answer, follow = serve(args.run_dir, args.host, args.port, args.first_port)
     try:
         while True:
             server.serve_selection(answer)
+            follow()
             time.sleep(0.05)
     except KeyboardInterrupt:
         server.close()

@@ -115,9 +115,11 @@ class GaussianMapper(Protocol):
     def training_views(self) -> list[TrainingView]:
         """The training views in arrival order (the records themselves, with their current poses)."""
 
-    def gaussians(self) -> GaussianCloud | None:
-        """Every Gaussian decoded as export_ply writes them, copied to the CPU (the viewer's
-        snapshot); None before the first training view."""
+    def gaussians(self, w2c: np.ndarray | torch.Tensor | None = None, camera: Camera | None = None) -> GaussianCloud | None:
+        """The Gaussians, copied to the CPU (the viewer's snapshot), None before the first training
+        view. w2c [4,4] given: those a render from that camera (intrinsics `camera`, default the
+        first training view's) draws, decoded for it (SEGS: the anchors in its frustum, with its
+        direction and a novel view's appearance). Without: every Gaussian as export_ply writes them."""
 
     def export_ply(self, path: str | Path, cloud: GaussianCloud | None = None) -> int:
         """Write `cloud` (from fitted_cloud) or, without one, the model's own export (SEGS: decoded

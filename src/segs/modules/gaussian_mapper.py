@@ -132,12 +132,18 @@ class GaussianMapperModule(L.LightningModule):
         return list(self.views.frames.values())
 
     @torch.no_grad()
-    def gaussians(self) -> GaussianCloud | None:
-        """Every Gaussian decoded with the first training view's direction and appearance, on the CPU."""
+    def gaussians(self, w2c: np.ndarray | torch.Tensor | None = None, camera=None) -> GaussianCloud | None:
+        """The Gaussians on the CPU. w2c [4,4] given: those a render from that camera draws (SEGS:
+        the anchors in its frustum, decoded for its direction and a novel view's appearance),
+        camera: its intrinsics (default: the first training view's). Without w2c: every Gaussian,
+        decoded with the first training view's direction and appearance (export_ply's)."""
         first = self.views.first()
         if first is None:
             return None
-        d = self.model.decode_all(View(first.w2c, first.camera, first.kf_id))
+        if w2c is None:
+            d = self.model.decode_all(View(first.w2c, first.camera, first.kf_id))
+        else:
+            d = self.model.decode(View(torch.as_tensor(w2c, dtype=torch.float32), camera or first.camera), self.model.total_steps)
         cpu = lambda t: t.detach().to("cpu", torch.float32)  # noqa: E731
         return GaussianCloud(cpu(d.means), cpu(d.quats), cpu(d.scales), cpu(d.opacities), cpu(d.colors))
 

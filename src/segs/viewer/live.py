@@ -2,9 +2,11 @@
 `TrackingViewer` (called by segs.track after each frame).
 
 Both take a snapshot at most every `viewer.refresh_s` seconds (training: and with at most
-`viewer.max_share` of the training thread's time) and only while a browser is connected. On the
-training thread, between two steps, the Gaussians are decoded once (GaussianMapper.gaussians,
-through the contract), one held-out frame is rendered for the panel's PSNR, and the copies are
+`viewer.max_share` of the training thread's time) and only while a browser is connected; training
+takes one sooner when a browser's camera has moved and settled (within the same share). On the
+training thread, between two steps, the Gaussians are decoded once for the browser's camera
+(GaussianMapper.gaussians: what a render from there draws; a SEGS map decodes its Gaussians per
+view), one held-out frame is rendered for the panel's PSNR, and the copies are
 handed to the server's drawing thread, which does everything else (covariances, the ground-truth
 alignment, encoding, sending). A keyframe selected in a browser is rendered between two steps.
 """
@@ -25,7 +27,7 @@ from segs.modules.contract import GaussianMapper, to_uint8
 from segs.modules.metrics import psnr
 from segs.trajectory import estimated_c2w
 from segs.viewer.config import ViewerConfig
-from segs.viewer.scene import KeyframeNode, Snapshot, Splats, Trajectories, thumbnail
+from segs.viewer.scene import SETTLE_S, BrowserCamera, KeyframeNode, Snapshot, Splats, Trajectories, decoded_for, thumbnail
 from segs.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
@@ -77,6 +79,7 @@ class LiveViewer(L.Callback):
         self._turn = 0
         self._splats_id = 0
         self._thumbs: dict[int, np.ndarray] = {}
+        self._camera_at = 0.0  # when the browser camera of the latest snapshot had moved (0: none known)
 
     def on_train_start(self, trainer, pl_module) -> None:
         self.bridge = next((c for c in trainer.callbacks if isinstance(c, SlamBridge)), None)
@@ -85,13 +88,24 @@ class LiveViewer(L.Callback):
     def period(self) -> float:
         """Seconds between two snapshots: refresh_s, or longer when the last snapshot took more
         than max_share of it on the training thread."""
-        cost = self.snapshot_ms[-1] / 1000.0 if self.snapshot_ms else 0.0
-        return max(self.cfg.refresh_s, cost / self.cfg.max_share)
+        return max(self.cfg.refresh_s, self.min_period())
+
+    def min_period(self) -> float:
+        """The shortest gap that keeps snapshots within max_share of the training thread."""
+        return (self.snapshot_ms[-1] / 1000.0 if self.snapshot_ms else 0.0) / self.cfg.max_share
+
+    def camera_moved(self, camera: BrowserCamera | None) -> bool:
+        """Whether the browser's camera moved since the latest snapshot and has been still since
+        for SETTLE_S."""
+        return camera is not None and camera.moved_at > self._camera_at and time.time() - camera.moved_at >= SETTLE_S
 
     def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         self.server.serve_selection(lambda kf_id: self._selection(pl_module, kf_id))
         now = time.perf_counter()
-        if now - self._last < self.period() or not self.server.clients():
+        if not self.server.clients():
+            return
+        since = now - self._last
+        if since < self.period() and not (since >= self.min_period() and self.camera_moved(self.server.browser_camera())):
             return
         self._last = now
         self.refresh(trainer, pl_module)
@@ -110,8 +124,11 @@ class LiveViewer(L.Callback):
 
     # -- one snapshot ---------------------------------------------------------------------------
     def refresh(self, trainer, module: GaussianMapper) -> None:
-        """Take a snapshot now and hand it to the server."""
-        cloud = module.gaussians()
+        """Take a snapshot now and hand it to the server: the Gaussians decoded for the camera of
+        the browser that moved last (before any reports one: every Gaussian, as exported)."""
+        camera = self.server.browser_camera()
+        cloud = module.gaussians() if camera is None else module.gaussians(camera.w2c, camera.camera)
+        self._camera_at = camera.moved_at if camera is not None else 0.0
         splats = Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
         self._splats_id += 1
         views = module.training_views()
@@ -127,10 +144,10 @@ class LiveViewer(L.Callback):
             points=None if points is None else points.points.copy(),
             point_colors=None if points is None else points.colors.copy(),
             trajectories=trajectories(self.sequence, bridge.run.trajectory(), self.align) if bridge is not None else None,
-            keyframes=keyframes, panel=self._panel(trainer, module, splats),
+            keyframes=keyframes, panel=self._panel(trainer, module, splats, camera),
         ))  # fmt: skip
 
-    def _panel(self, trainer, module: GaussianMapper, splats: Splats | None) -> dict[str, str]:
+    def _panel(self, trainer, module: GaussianMapper, splats: Splats | None, camera: BrowserCamera | None) -> dict[str, str]:
         counts, bridge = module.counts(), self.bridge
         step, now = trainer.global_step, time.perf_counter()
         rate = (step - self._last_step) / (now - self._t_step) if now > self._t_step and step > self._last_step else None
@@ -144,7 +161,7 @@ class LiveViewer(L.Callback):
             "keyframes (training views)": f"{len(run.keyframe_frames()) if run else 0} ({counts.training_views})",
             "anchors": str(counts.anchors),
             "Gaussians": str(counts.gaussians),
-            "Gaussians drawn (opacity >= 1/255)": str(len(splats) if splats is not None else 0),
+            "Gaussians drawn (opacity >= 1/255)": f"{len(splats) if splats is not None else 0} ({decoded_for(camera)})",
             "map points": str(len(bridge.map_points) if bridge is not None else 0),
             "frames tracked": f"{tracked} of {len(self.sequence)}",
             "tracking": _fps(run.tracking_fps() if run is not None else None),

@@ -106,17 +106,49 @@ class Snapshot:
     panel: dict[str, str] = field(default_factory=dict)
 
 
-def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """quats [N,4] wxyz (any norm), scales [N,3] -> covariances [N,3,3] float32."""
+def rotations(quats: np.ndarray) -> np.ndarray:
+    """quats [N,4] wxyz (any norm) -> rotation matrices [N,3,3]."""
     q = quats / np.linalg.norm(quats, axis=1, keepdims=True).clip(1e-12)
     w, x, y, z = q.T
-    rot = np.stack([
+    return np.stack([
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
     ], 1).reshape(-1, 3, 3)  # fmt: skip
-    m = rot * scales[:, None, :]
+
+
+def covariances(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """quats [N,4] wxyz (any norm), scales [N,3] -> covariances [N,3,3] float32."""
+    m = rotations(quats) * scales[:, None, :]
     return (m @ m.transpose(0, 2, 1)).astype(np.float32)
+
+
+SETTLE_S = 0.3  # a browser's camera is decoded for once still this long after a move (not at every frame of a drag)
+
+
+@dataclass
+class BrowserCamera:
+    """A browser's camera: w2c [4,4] float64 (OpenCV axes: x right, y down, z forward), the
+    pinhole intrinsics of its canvas, and when it last moved (time.time() of the server)."""
+
+    w2c: np.ndarray
+    camera: Camera
+    moved_at: float
+
+
+def decoded_for(camera: BrowserCamera | None) -> str:
+    """The panel's words for what the drawn Gaussians of a map were decoded for."""
+    return "every one, decoded for the first keyframe" if camera is None else "decoded for this camera's view"
+
+
+def browser_camera(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, height: int, moved_at: float) -> BrowserCamera:
+    """A browser's camera from viser's state: orientation wxyz [4] and position [3] of the camera
+    in the world (c2w, OpenCV axes), vertical field of view fov (radians), canvas width x height."""
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = rotations(np.asarray(wxyz, np.float64)[None])[0], position
+    w, h = max(int(width), 1), max(int(height), 1)
+    f = h / (2.0 * np.tan(fov / 2.0))
+    return BrowserCamera(np.linalg.inv(c2w), Camera(f, f, w / 2.0, h / 2.0, w, h), float(moved_at))
 
 
 @dataclass

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from segs.errors import ConfigError
-from segs.viewer.scene import Framing, KeyframeNode, Snapshot, framing
+from segs.viewer.scene import BrowserCamera, Framing, KeyframeNode, Snapshot, browser_camera, framing
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,7 @@ class ViewerServer:
         self._frustums: dict[int, object] = {}
         self.nodes: dict[str, object] = {}  # scene node name -> viser handle, of what is drawn now
         self._splats_id = None
-        self._framed = False
+        self.framed: Framing | None = None  # where the browsers' camera was put (the first snapshot's framing)
         self._keyframe_labels: dict[str, int] = {}
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: the address is printed in one line instead
             self.server = viser.ViserServer(host=host, port=chosen, label=title, verbose=False)
@@ -105,6 +105,20 @@ class ViewerServer:
     def clients(self) -> int:
         """Browsers connected now."""
         return len(self.server.get_clients())
+
+    def browser_camera(self) -> BrowserCamera | None:
+        """The camera of the connected browser that moved last, or None before one has reported
+        its camera."""
+        latest = None
+        for client in self.server.get_clients().values():
+            cam = client.camera
+            try:  # viser refuses to read a camera that the browser has not reported yet
+                state = (cam.wxyz, cam.position, cam.fov, cam.image_width, cam.image_height, cam.update_timestamp)
+            except AssertionError:
+                continue
+            if state[-1] > 0 and (latest is None or state[-1] > latest[-1]):
+                latest = state
+        return None if latest is None else browser_camera(*latest)
 
     def submit(self, snapshot: Snapshot) -> None:
         """Hand a snapshot to the drawing thread (replacing one it has not drawn yet)."""
@@ -177,7 +191,7 @@ class ViewerServer:
     def _draw(self, s: Snapshot) -> None:
         scene = self.server.scene
         frame = framing(s)
-        if frame is not None and not self._framed:
+        if frame is not None and self.framed is None:
             self._frame_camera(frame)
         extent = frame.extent if frame is not None else 1.0
         if s.splats is not None and s.splats_id != self._splats_id:
@@ -231,7 +245,7 @@ class ViewerServer:
 
     def _frame_camera(self, frame: Framing) -> None:
         """Point the browsers' camera at the map (scene.framing), once."""
-        self._framed = True
+        self.framed = frame
         up = tuple(float(v) for v in frame.up)
         self.server.scene.set_up_direction(up)
         cam = self.server.initial_camera

@@ -1,0 +1,167 @@
+"""The viewer draws a map as seen from the browser's camera: the browser's pose read in viser's
+convention, the Gaussians a render from that camera draws (a SEGS map decodes its Gaussians per
+view), and a run shown from its checkpoint decoded again when the camera has moved and settled.
+A tiny synthetic run (tests/conftest.py TINY); no browser (test_viewer.py has the one that needs it)."""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import TINY
+
+viser = pytest.importorskip("viser", reason='the viewer extra is not installed (pip install -e ".[viewer]")')
+
+from segs.data.frame import Camera  # noqa: E402
+from segs.modules.scene_model import View  # noqa: E402
+from segs.raster import EPS2D  # noqa: E402
+from segs.viewer.scene import SETTLE_S, BrowserCamera, Splats, browser_camera  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cut_run(tmp_path_factory) -> Path:
+    """A tiny training run shown from its checkpoint (no point_cloud.ply: as an interrupted run)."""
+    out = tmp_path_factory.mktemp("camera") / "run"
+    overrides = ["trainer.max_steps=300", "callbacks.periodic_checkpoint.every_n_steps=0", "eval.ply_fit_steps=0", f"hydra.run.dir={out}"]
+    res = subprocess.run([sys.executable, "-m", "segs.train", *TINY, *overrides], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    (out / "point_cloud.ply").unlink()
+    return out
+
+
+def test_the_browsers_pose_is_read_in_viser_convention():
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        c2w = np.eye(4)
+        c2w[:3, :3] = viser.transforms.SO3.exp(rng.normal(size=3)).as_matrix()
+        c2w[:3, 3] = rng.normal(size=3)
+        # what the server draws for a keyframe at c2w (server._draw_keyframes), read back
+        wxyz = viser.transforms.SO3.from_matrix(c2w[:3, :3]).wxyz
+        cam = browser_camera(wxyz, c2w[:3, 3], np.deg2rad(60.0), 800, 600, moved_at=5.0)
+        np.testing.assert_allclose(cam.w2c, np.linalg.inv(c2w), atol=1e-9)
+    assert cam.camera.fy == cam.camera.fx == pytest.approx(300.0 / np.tan(np.deg2rad(30.0)))
+    assert (cam.camera.width, cam.camera.height, cam.camera.cx, cam.camera.cy, cam.moved_at) == (800, 600, 400.0, 300.0, 5.0)
+
+
+def _test_views(run_dir: Path):
+    from segs.view import load_mapper, load_sequence
+    from segs.viewer.saved_run import read_run
+
+    run = read_run(run_dir)
+    mapper, (sequence, _) = load_mapper(run), load_sequence(run)
+    test = [int(line.split(",")[0]) for line in (run_dir / "test_views.csv").read_text().splitlines()[1:]]
+    return run, mapper, sequence, [(run.w2c_at(sequence.timestamps[i]), sequence[i]) for i in test]
+
+
+def test_the_gaussians_for_a_camera_are_what_a_render_from_it_draws(cut_run):
+    run, mapper, sequence, views = _test_views(cut_run)
+    drawn = lambda c, w2c, cam: mapper.render_cloud((c.means, c.quats, c.scales, c.opacities, c.colors), w2c, cam).clamp(0, 1)  # noqa: E731
+    for w2c, frame in views:  # the held-out frames
+        cloud = mapper.gaussians(w2c, frame.camera)
+        rendered, _ = mapper.render(View(torch.as_tensor(w2c, dtype=torch.float32), frame.camera), eps2d=EPS2D)
+        torch.testing.assert_close(drawn(cloud, w2c, frame.camera), rendered.image.clamp(0, 1), atol=1e-4, rtol=0)
+        # what the viewer drew before: every Gaussian decoded for the first keyframe, another image
+        assert (drawn(mapper.gaussians(), w2c, frame.camera) - rendered.image.clamp(0, 1)).abs().mean() > 0.01
+    assert len(views) >= 3
+
+
+class _Browser:
+    """A server with one browser whose camera the test sets (ViewerServer's browser_camera / submit)."""
+
+    def __init__(self):
+        self.camera: BrowserCamera | None = None
+        self.submitted = []
+
+    def browser_camera(self):
+        return self.camera
+
+    def submit(self, snapshot):
+        self.submitted.append(snapshot)
+
+
+def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_a_moved_camera(cut_run):
+    from segs.view import CameraFollower
+
+    run, mapper, sequence, views = _test_views(cut_run)
+    server = _Browser()
+    follow = CameraFollower(server, run, mapper, sequence, None)
+    assert follow.active and not follow()  # no browser camera yet
+    w2c, frame = views[0]
+    server.camera = BrowserCamera(w2c, frame.camera, moved_at=time.time())
+    assert not follow()  # still moving: not decoded at every frame of a drag
+    server.camera.moved_at -= SETTLE_S
+    assert follow() and not follow()  # once, until it moves again
+    shown = server.submitted[-1]
+    expected = Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible()
+    assert np.array_equal(shown.splats.means, expected.means) and np.array_equal(shown.splats.colors, expected.colors)
+    assert "decoded for this camera's view" in shown.panel["Gaussians drawn (opacity >= 1/255)"]
+    w2c2, frame2 = views[-1]
+    server.camera = BrowserCamera(w2c2, Camera(500.0, 500.0, 400.0, 300.0, 800, 600), moved_at=time.time() - SETTLE_S)
+    assert follow()
+    moved = server.submitted[-1]
+    assert moved is not shown and moved.splats_id != shown.splats_id
+    assert len(moved.splats) != len(shown.splats) or not np.array_equal(moved.splats.means, shown.splats.means)
+
+
+def test_a_run_shown_from_its_ply_does_not_follow_the_camera(cut_run, tmp_path):
+    from segs.view import CameraFollower, load_mapper
+    from segs.viewer.saved_run import read_run
+
+    done = tmp_path / "done"
+    shutil.copytree(cut_run, done)
+    mapper = load_mapper(read_run(done))
+    mapper.export_ply(done / "point_cloud.ply")  # newer than the checkpoint: the PLY is what is shown
+    server = _Browser()
+    server.camera = BrowserCamera(np.eye(4), Camera(500.0, 500.0, 400.0, 300.0, 800, 600), moved_at=time.time() - SETTLE_S)
+    follow = CameraFollower(server, read_run(done), mapper, None, None)
+    assert not follow.active and not follow() and not server.submitted
+
+
+class _Connected(_Browser):
+    """The same browser, connected (what LiveViewer asks of its server)."""
+
+    def clients(self) -> int:
+        return 1
+
+    def serve_selection(self, provider) -> bool:
+        return False
+
+
+def test_training_takes_a_snapshot_for_a_moved_camera_before_its_period(cut_run):
+    from segs.viewer.config import viewer_config
+    from segs.viewer.live import LiveViewer
+
+    run, mapper, sequence, views = _test_views(cut_run)
+    cfg = viewer_config({"enabled": True, "host": "127.0.0.1", "port": None, "first_port": 18080, "refresh_s": 1000.0,
+                         "max_share": 1.0, "test_views": 0})  # fmt: skip
+    viewer = LiveViewer(cfg, sequence)
+    viewer.server.close()
+    viewer.server = server = _Connected()
+    trainer = SimpleNamespace(global_step=10, max_steps=100, callbacks=[])
+    step = lambda: viewer.on_train_batch_end(trainer, mapper, None, None, 0)  # noqa: E731
+    viewer.on_train_start(trainer, mapper)
+    step()  # the first snapshot: no browser camera known yet
+    assert len(server.submitted) == 1 and "first keyframe" in server.submitted[0].panel["Gaussians drawn (opacity >= 1/255)"]
+    step()
+    assert len(server.submitted) == 1  # refresh_s not over, the camera unknown
+    w2c, frame = views[0]
+    server.camera = BrowserCamera(w2c, frame.camera, moved_at=time.time())
+    step()
+    assert len(server.submitted) == 1  # moving
+    server.camera.moved_at -= SETTLE_S
+    time.sleep(viewer.min_period())
+    step()
+    assert len(server.submitted) == 2
+    shown = server.submitted[-1]
+    expected = Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible()
+    assert np.array_equal(shown.splats.means, expected.means) and shown.splats_id != server.submitted[0].splats_id
+    assert "decoded for this camera's view" in shown.panel["Gaussians drawn (opacity >= 1/255)"]
+    step()
+    assert len(server.submitted) == 2  # the same camera: back to refresh_s
