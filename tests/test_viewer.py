@@ -62,9 +62,9 @@ def track_run(tmp_path_factory) -> Path:
 def _serve(run_dir: Path):
     from segs.view import serve
 
-    server, provider, _ = serve(run_dir, "127.0.0.1", None, _free_port())
+    server, provider, follow = serve(run_dir, "127.0.0.1", None, _free_port())
     assert server.wait_idle(timeout=30)
-    return server, provider
+    return server, provider, follow
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -95,15 +95,17 @@ def test_a_busy_port_is_skipped_or_refused_when_given():
 def test_the_server_serves_a_train_run(train_run):
     run = read_run(train_run)
     assert run.kind == "train" and run.status == "finished" and run.checkpoint.name == "final.ckpt"
-    server, provider = _serve(train_run)
+    server, provider, follow = _serve(train_run)
     try:
         page = urllib.request.urlopen(server.url, timeout=10).read().decode()
         assert "<html" in page.lower()
         splats = server.nodes["/map/gaussians"]
         logits = np.asarray(PlyData.read(str(train_run / "point_cloud.ply"))["vertex"]["opacity"], np.float64)
         n_visible = int((1.0 / (1.0 + np.exp(-logits)) >= MIN_OPACITY).sum())
-        # the exported Gaussians (fitted to the views: none is below what can show)
+        # the exported Gaussians (fitted to the views: none is below what can show), the map decoded
+        # for the browser's camera one choice away
         assert len(splats.buffer) == n_visible == len(logits) > 0
+        assert follow.choice is not None and follow.choice.value == follow.source() == "point_cloud.ply (as a 3D-GS viewer shows it)"
         assert len(server.nodes["/map/points"].points) == len(PlyData.read(str(train_run / "map_points.ply"))["vertex"]) > 0
         assert {"/trajectory/estimated", "/trajectory/ground_truth"} <= set(server.nodes)
         frustums = [k for k in server.nodes if k.startswith("/keyframes/")]
@@ -123,9 +125,9 @@ def test_the_server_serves_a_track_run_with_its_map_points(track_run):
     assert run.kind == "track" and run.status == "finished" and len(run.keyframes) >= 3
     points = PlyData.read(str(track_run / "map_points.ply"))["vertex"]
     assert len(points) > 0 and {"x", "y", "z", "red", "green", "blue", "kf_id"} <= set(points.data.dtype.names)
-    server, provider = _serve(track_run)
+    server, provider, follow = _serve(track_run)
     try:
-        assert "/map/gaussians" not in server.nodes  # tracking only: no Gaussians
+        assert "/map/gaussians" not in server.nodes and follow.choice is None  # tracking only: no Gaussians
         assert len(server.nodes["/map/points"].points) == len(points)
         assert "/trajectory/estimated" in server.nodes
         assert len([k for k in server.nodes if k.startswith("/keyframes/")]) == len(run.keyframes)
@@ -144,9 +146,9 @@ def test_an_interrupted_train_run_is_shown_from_its_last_checkpoint(train_run, t
     (cut / "point_cloud.ply").unlink()
     run = read_run(cut)
     assert run.status == "interrupted" and run.checkpoint.name == "last.ckpt" and run.trajectory is not None
-    server, _ = _serve(cut)
+    server, _, follow = _serve(cut)
     try:
-        assert "/map/gaussians" in server.nodes and "/trajectory/estimated" in server.nodes
+        assert "/map/gaussians" in server.nodes and "/trajectory/estimated" in server.nodes and follow.choice is None
         from_checkpoint = len(server.nodes["/map/gaussians"].buffer)
     finally:
         server.close()

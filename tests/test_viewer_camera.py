@@ -87,12 +87,12 @@ class _Browser:
 
 
 def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_a_moved_camera(cut_run):
-    from segs.view import CameraFollower
+    from segs.view import CAMERA, CameraFollower
 
     run, mapper, sequence, views = _test_views(cut_run)
     server = _Browser()
     follow = CameraFollower(server, run, mapper, sequence, None)
-    assert follow.active and not follow()  # no browser camera yet
+    assert follow.source() == CAMERA and not follow()  # no browser camera yet
     w2c, frame = views[0]
     server.camera = BrowserCamera(w2c, frame.camera, moved_at=time.time())
     assert not follow()  # still moving: not decoded at every frame of a drag
@@ -110,18 +110,31 @@ def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_a_moved_camera(cut
     assert len(moved.splats) != len(shown.splats) or not np.array_equal(moved.splats.means, shown.splats.means)
 
 
-def test_a_run_shown_from_its_ply_does_not_follow_the_camera(cut_run, tmp_path):
-    from segs.view import CameraFollower, load_mapper
-    from segs.viewer.saved_run import read_run
+def test_a_run_shown_from_its_ply_follows_the_camera_once_chosen(cut_run, tmp_path):
+    from segs.view import CAMERA, PLY, CameraFollower, load_mapper
+    from segs.viewer.saved_run import read_gaussian_ply, read_run
 
     done = tmp_path / "done"
     shutil.copytree(cut_run, done)
     mapper = load_mapper(read_run(done))
     mapper.export_ply(done / "point_cloud.ply")  # newer than the checkpoint: the PLY is what is shown
     server = _Browser()
-    server.camera = BrowserCamera(np.eye(4), Camera(500.0, 500.0, 400.0, 300.0, 800, 600), moved_at=time.time() - SETTLE_S)
-    follow = CameraFollower(server, read_run(done), mapper, None, None)
-    assert not follow.active and not follow() and not server.submitted
+    w2c, camera = np.eye(4), Camera(500.0, 500.0, 400.0, 300.0, 800, 600)
+    server.camera = BrowserCamera(w2c, camera, moved_at=time.time() - SETTLE_S)
+    follow = CameraFollower(server, read_run(done), mapper, None, None)  # no choice offered: the PLY
+    assert follow.source() == PLY and not follow() and not server.submitted
+    choice = SimpleNamespace(value=PLY)  # the browser's dropdown
+    follow = CameraFollower(server, read_run(done), mapper, None, None, choice)
+    assert not follow() and not server.submitted
+    choice.value = CAMERA
+    assert follow() and not follow()
+    decoded = Splats.from_cloud(mapper.gaussians(w2c, camera)).visible()
+    assert np.array_equal(server.submitted[-1].splats.means, decoded.means)
+    choice.value = PLY
+    assert follow() and not follow()
+    exported = read_gaussian_ply(done / "point_cloud.ply").visible()
+    assert np.array_equal(server.submitted[-1].splats.means, exported.means) and len(server.submitted) == 2
+    assert server.submitted[-1].panel["Gaussians drawn (opacity >= 1/255)"].endswith("(point_cloud.ply)")
 
 
 class _Connected(_Browser):

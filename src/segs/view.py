@@ -4,7 +4,8 @@ Any run folder of segs.train or segs.track, finished or interrupted: the Gaussia
 (point_cloud.ply, as the run exported them; without it or when a checkpoint is newer, an
 interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, for
 the browser's camera: what a render from there draws, decoded again when the camera has moved
-and settled), the SLAM map points (map_points.ply), the estimated trajectory
+and settled; a run with both: the PLY, or the checkpoint's decoding chosen in the panel), the
+SLAM map points (map_points.ply), the estimated trajectory
 (trajectory.txt or trajectory_partial.txt) beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
 its image and the render from its pose) and the run's numbers. Serves until Ctrl-C. Defaults of
 --host / --port / --first-port: conf/viewer/on.yaml. A busy --port, a folder that is not a run:
@@ -68,11 +69,13 @@ def shows_ply(run: SavedRun) -> bool:
     return run.ply is not None and (run.checkpoint is None or run.ply.stat().st_mtime >= run.checkpoint.stat().st_mtime)
 
 
-def snapshot(run: SavedRun, mapper, sequence, note: str | None, camera: BrowserCamera | None = None, splats_id: int = 1) -> Snapshot:
-    """Everything the run folder shows, as one snapshot; the checkpoint's Gaussians decoded for
-    `camera` (without one: every Gaussian, for the first keyframe), numbered splats_id."""
-    splats = None
-    if shows_ply(run):
+def snapshot(run: SavedRun, mapper, sequence, note: str | None, camera: BrowserCamera | None = None, splats_id: int = 1,
+             ply: bool | None = None) -> Snapshot:
+    """Everything the run folder shows, as one snapshot, numbered splats_id: the Gaussians of its
+    point_cloud.ply (ply; None: when shows_ply), else the checkpoint's, decoded for `camera`
+    (without one: every Gaussian, for the first keyframe)."""
+    splats, ply = None, shows_ply(run) if ply is None else ply
+    if ply:
         splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
     elif mapper is not None:
         cloud = mapper.gaussians() if camera is None else mapper.gaussians(camera.w2c, camera.camera)
@@ -84,7 +87,7 @@ def snapshot(run: SavedRun, mapper, sequence, note: str | None, camera: BrowserC
         trajs = Trajectories(run.trajectory[0], run.trajectory[1], gt[0], gt[1], align)
     points = run.points or (None, None)
     return Snapshot(splats=splats, splats_id=splats_id, points=points[0], point_colors=points[1], trajectories=trajs,
-                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, splats, note, camera))  # fmt: skip
+                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, splats, note, camera, ply))  # fmt: skip
 
 
 def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
@@ -103,7 +106,7 @@ def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
     return out
 
 
-def panel(run: SavedRun, mapper, splats, note: str | None, camera: BrowserCamera | None = None) -> dict[str, str]:
+def panel(run: SavedRun, mapper, splats, note: str | None, camera: BrowserCamera | None = None, ply: bool = False) -> dict[str, str]:
     r = run.results
     fmt = lambda key, spec, unit="": "n/a" if r.get(key) is None else f"{r[key]:{spec}}{unit}"  # noqa: E731
     rows = {"run": f"{run.kind} ({run.status.replace('_', ' ')}): {run.path.name}"}
@@ -113,7 +116,7 @@ def panel(run: SavedRun, mapper, splats, note: str | None, camera: BrowserCamera
         rows["test PSNR so far"] = f"{fmt('psnr', '.2f', ' dB')} ({r.get('test_views', 0)} test views)" if r else "n/a (not evaluated)"
         rows["anchors"] = str(counts.anchors if counts else r.get("anchors", "n/a"))
         rows["Gaussians"] = str(counts.gaussians if counts else r.get("gaussians", "n/a"))
-        shown = "point_cloud.ply" if shows_ply(run) else decoded_for(camera) if mapper is not None else "none"
+        shown = "point_cloud.ply" if ply else decoded_for(camera) if mapper is not None else "none"
         rows["Gaussians drawn (opacity >= 1/255)"] = f"{len(splats) if splats is not None else 0} ({shown})"
         rows["training"] = fmt("iterations_per_s", ".1f", " steps/s")
     else:
@@ -148,23 +151,37 @@ def provider(run: SavedRun, mapper, sequence):
     return show
 
 
-class CameraFollower:
-    """Decodes the checkpoint's Gaussians again for the browser's camera once it has moved and
-    settled (a run shown from its checkpoint; its PLY, when shown, is the same from everywhere)."""
+PLY, CAMERA = "point_cloud.ply (as a 3D-GS viewer shows it)", "decoded for this camera (the map's render)"
 
-    def __init__(self, server, run: SavedRun, mapper, sequence, note: str | None):
-        self.server, self.args = server, (run, mapper, sequence, note)
-        self.active = mapper is not None and not shows_ply(run)
+
+class CameraFollower:
+    """What segs.view draws of the map, kept up to date: the checkpoint's Gaussians decoded again
+    for the browser's camera once it has moved and settled, or the run's point_cloud.ply (the
+    same from everywhere). choice: the browser's dropdown between the two (PLY / CAMERA) when the
+    run has both, else None (a run with a current PLY shows it; one without, its checkpoint)."""
+
+    def __init__(self, server, run: SavedRun, mapper, sequence, note: str | None, choice=None):
+        self.server, self.args, self.choice = server, (run, mapper, sequence, note), choice
+        self.fixed = PLY if shows_ply(run) or mapper is None else CAMERA
+        self.shown = self.fixed  # what serve's first snapshot drew
         self.decoded_at = 0.0  # when the camera last decoded for had moved
         self.snapshots = 1  # submitted so far (serve's first one included)
 
+    def source(self) -> str:
+        return self.choice.value if self.choice is not None else self.fixed
+
     def __call__(self) -> bool:
-        """Submit a new snapshot if the camera moved and settled; returns whether one was."""
-        camera = self.server.browser_camera() if self.active else None
-        if camera is None or camera.moved_at <= self.decoded_at or time.time() - camera.moved_at < SETTLE_S:
+        """Submit a new snapshot when the source was switched, or, decoding for the camera, the
+        camera moved and settled; returns whether one was."""
+        source = self.source()
+        camera = self.server.browser_camera() if source == CAMERA and self.args[1] is not None else None
+        moved = camera is not None and camera.moved_at > self.decoded_at and time.time() - camera.moved_at >= SETTLE_S
+        if source == self.shown and not moved:
             return False
-        self.decoded_at, self.snapshots = camera.moved_at, self.snapshots + 1
-        self.server.submit(snapshot(*self.args, camera=camera, splats_id=self.snapshots))
+        if camera is not None:
+            self.decoded_at = camera.moved_at
+        self.shown, self.snapshots = source, self.snapshots + 1
+        self.server.submit(snapshot(*self.args, camera=camera, splats_id=self.snapshots, ply=source == PLY))
         return True
 
 
@@ -182,10 +199,13 @@ def serve(run_dir: str | Path, host: str, port: int | None, first_port: int):
         mapper = load_mapper(run)
         sequence, note = load_sequence(run)
         server.submit(snapshot(run, mapper, sequence, note))
+        choice = None
+        if mapper is not None and shows_ply(run):
+            choice = server.add_dropdown("Gaussians", (PLY, CAMERA), PLY, "the exported PLY, or the map decoded for this camera")
     except BaseException:
         server.close()
         raise
-    return server, provider(run, mapper, sequence), CameraFollower(server, run, mapper, sequence, note)
+    return server, provider(run, mapper, sequence), CameraFollower(server, run, mapper, sequence, note, choice)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -149,6 +149,10 @@ class ViewerServer:
         self._pair.visible = self._pair_note.visible = True
         return True
 
+    def add_dropdown(self, label: str, options: tuple[str, ...], initial: str, hint: str):
+        """A dropdown in the panel (below the keyframe list); its `.value` is the browsers' choice."""
+        return self.server.gui.add_dropdown(label, options, initial_value=initial, hint=hint)
+
     def close(self) -> None:
         with self._cond:
             self._closed = True
