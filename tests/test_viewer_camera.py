@@ -147,21 +147,45 @@ class _Connected(_Browser):
         return False
 
 
+class _Bridge:
+    """What LiveViewer reads of the SLAM bridge: the run's trajectory (its test frames at their
+    saved poses), test frames, keyframes, map points and speeds."""
+
+    def __init__(self, run, sequence):
+        test = [int(line.split(",")[0]) for line in (run.path / "test_views.csv").read_text().splitlines()[1:]]
+        poses = {i: run.w2c_at(sequence.timestamps[i]) for i in test}
+        self.map_points = _Points()
+        self.run = SimpleNamespace(trajectory=lambda: poses, test_frames=lambda: test, keyframe_frames=dict, tracking_fps=lambda: None,
+                                   mode="interleaved", dropped_frames=list)  # fmt: skip
+
+
+class _Points:
+    points = colors = np.zeros((0, 3), np.float32)
+
+    def __len__(self) -> int:
+        return 0
+
+
 def test_training_takes_a_snapshot_for_a_moved_camera_before_its_period(cut_run):
     from segs.viewer.config import viewer_config
     from segs.viewer.live import LiveViewer
 
     run, mapper, sequence, views = _test_views(cut_run)
     cfg = viewer_config({"enabled": True, "host": "127.0.0.1", "port": None, "first_port": 18080, "refresh_s": 1000.0,
-                         "max_share": 1.0, "test_views": 0})  # fmt: skip
+                         "max_share": 1.0, "test_views": 2})  # fmt: skip
     viewer = LiveViewer(cfg, sequence)
     viewer.server.close()
     viewer.server = server = _Connected()
     trainer = SimpleNamespace(global_step=10, max_steps=100, callbacks=[])
     step = lambda: viewer.on_train_batch_end(trainer, mapper, None, None, 0)  # noqa: E731
     viewer.on_train_start(trainer, mapper)
+    viewer.bridge = _Bridge(run, sequence)
+    renders = []
+    render_image = mapper.render_image
+    mapper.render_image = lambda *a, **k: renders.append(1) or render_image(*a, **k)  # the panel's test frames
     step()  # the first snapshot: no browser camera known yet
     assert len(server.submitted) == 1 and "first keyframe" in server.submitted[0].panel["Gaussians drawn (opacity >= 1/255)"]
+    assert len(renders) == 1 and "1 held-out frames" in server.submitted[0].panel["test PSNR so far"]
     step()
     assert len(server.submitted) == 1  # refresh_s not over, the camera unknown
     w2c, frame = views[0]
@@ -176,5 +200,8 @@ def test_training_takes_a_snapshot_for_a_moved_camera_before_its_period(cut_run)
     expected = Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible()
     assert np.array_equal(shown.splats.means, expected.means) and shown.splats_id != server.submitted[0].splats_id
     assert "decoded for this camera's view" in shown.panel["Gaussians drawn (opacity >= 1/255)"]
+    # no test frame rendered for a moved camera: the panel keeps the last one's PSNR
+    assert len(renders) == 1 and shown.panel["test PSNR so far"] == server.submitted[0].panel["test PSNR so far"]
+    assert len(viewer.snapshot_ms) == 2 and viewer.camera_ms == viewer.snapshot_ms[1:]
     step()
     assert len(server.submitted) == 2  # the same camera: back to refresh_s

@@ -73,6 +73,7 @@ class LiveViewer(L.Callback):
         self.server = start_server(cfg, f"segs.train: {getattr(sequence, 'name', '')}")
         self.bridge: SlamBridge | None = None
         self.snapshot_ms: list[float] = []  # time each snapshot took on the training thread
+        self.camera_ms: list[float] = []  # the same, of the snapshots taken early for a moved camera
         self._last = -float("inf")
         self._last_step = 0
         self._test: deque[tuple[int, float, int]] = deque(maxlen=max(cfg.test_views, 1))  # (frame, psnr, step)
@@ -105,11 +106,14 @@ class LiveViewer(L.Callback):
         if not self.server.clients():
             return
         since = now - self._last
-        if since < self.period() and not (since >= self.min_period() and self.camera_moved(self.server.browser_camera())):
+        due = since >= self.period()
+        if not due and not (since >= self.min_period() and self.camera_moved(self.server.browser_camera())):
             return
         self._last = now
-        self.refresh(trainer, pl_module)
+        self.refresh(trainer, pl_module, test_view=due)  # a moved camera's snapshot renders no test frame
         self.snapshot_ms.append((time.perf_counter() - now) * 1000.0)
+        if not due:
+            self.camera_ms.append(self.snapshot_ms[-1])
 
     def on_train_end(self, trainer, pl_module: GaussianMapper) -> None:
         if self.server.clients():
@@ -118,14 +122,17 @@ class LiveViewer(L.Callback):
             self.server.wait_idle(timeout=30)
             log.info("viewer: %d snapshots, median %.1f ms on the training thread, %.1f ms CPU drawing them", len(self.snapshot_ms),
                      np.median(self.snapshot_ms), np.median(self.server.draw_ms) if self.server.draw_ms else float("nan"))  # fmt: skip
+            if self.camera_ms:
+                log.info("viewer: %d of them early for a moved camera, median %.1f ms", len(self.camera_ms), np.median(self.camera_ms))
 
     def teardown(self, trainer, pl_module, stage: str) -> None:
         close(self.server, trainer.default_root_dir)
 
     # -- one snapshot ---------------------------------------------------------------------------
-    def refresh(self, trainer, module: GaussianMapper) -> None:
+    def refresh(self, trainer, module: GaussianMapper, test_view: bool = True) -> None:
         """Take a snapshot now and hand it to the server: the Gaussians decoded for the camera of
-        the browser that moved last (before any reports one: every Gaussian, as exported)."""
+        the browser that moved last (before any reports one: every Gaussian, as exported); with
+        test_view, one held-out frame rendered for the panel's PSNR."""
         camera = self.server.browser_camera()
         cloud = module.gaussians() if camera is None else module.gaussians(camera.w2c, camera.camera)
         self._camera_at = camera.moved_at if camera is not None else 0.0
@@ -144,10 +151,11 @@ class LiveViewer(L.Callback):
             points=None if points is None else points.points.copy(),
             point_colors=None if points is None else points.colors.copy(),
             trajectories=trajectories(self.sequence, bridge.run.trajectory(), self.align) if bridge is not None else None,
-            keyframes=keyframes, panel=self._panel(trainer, module, splats, camera),
+            keyframes=keyframes, panel=self._panel(trainer, module, splats, camera, test_view),
         ))  # fmt: skip
 
-    def _panel(self, trainer, module: GaussianMapper, splats: Splats | None, camera: BrowserCamera | None) -> dict[str, str]:
+    def _panel(self, trainer, module: GaussianMapper, splats: Splats | None, camera: BrowserCamera | None,
+               test_view: bool = True) -> dict[str, str]:
         counts, bridge = module.counts(), self.bridge
         step, now = trainer.global_step, time.perf_counter()
         rate = (step - self._last_step) / (now - self._t_step) if now > self._t_step and step > self._last_step else None
@@ -157,7 +165,7 @@ class LiveViewer(L.Callback):
         return {
             "run": "training",
             "step": f"{step} of {trainer.max_steps}",
-            "test PSNR so far": self._test_psnr(module, step),
+            "test PSNR so far": self._test_psnr(module, step, test_view),
             "keyframes (training views)": f"{len(run.keyframe_frames()) if run else 0} ({counts.training_views})",
             "anchors": str(counts.anchors),
             "Gaussians": str(counts.gaussians),
@@ -170,12 +178,12 @@ class LiveViewer(L.Callback):
             "refresh": f"every {self.period():.0f} s",
         }
 
-    def _test_psnr(self, module: GaussianMapper, step: int) -> str:
-        """Render one held-out test frame (in turn over test_views of them) at its estimated
-        pose; the mean PSNR of the last test_views renders."""
+    def _test_psnr(self, module: GaussianMapper, step: int, render: bool = True) -> str:
+        """Render (with render) one held-out test frame (in turn over test_views of them) at its
+        estimated pose; the mean PSNR of the last test_views renders."""
         if self.cfg.test_views == 0:
             return "off (viewer.test_views=0)"
-        test = self.bridge.run.test_frames() if self.bridge is not None else []
+        test = self.bridge.run.test_frames() if self.bridge is not None and render else []
         if test:
             picks = np.asarray(test)[np.linspace(0, len(test) - 1, min(self.cfg.test_views, len(test))).round().astype(int)]
             index = int(picks[self._turn % len(picks)])
