@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 import urllib.request
 from pathlib import Path
 
@@ -257,8 +258,13 @@ def test_a_browser_shows_the_map_growing_during_training(tmp_path):
                 text = page.inner_text("body")
                 assert f"Gaussians\t{seen[step]}\n" in text or f"Gaussians {seen[step]}" in " ".join(text.split()), text
                 if step == stops[-1]:  # the browser's camera, where the first snapshot put it, read back
-                    camera, framed = viewer.server.browser_camera(), viewer.server.framed
-                    c2w, forward = np.linalg.inv(camera.w2c), framed.look_at - framed.position
+                    framed, c2w = viewer.server.framed, None
+                    for _ in range(100):  # the browser may still report its camera from before the framing
+                        c2w = np.linalg.inv(viewer.server.browser_camera().w2c)
+                        if np.allclose(c2w[:3, 3], framed.position, atol=1e-3 * framed.extent):
+                            break
+                        time.sleep(0.2)
+                    forward = framed.look_at - framed.position
                     np.testing.assert_allclose(c2w[:3, 3], framed.position, atol=1e-3 * framed.extent)
                     assert c2w[:3, 2] @ forward / np.linalg.norm(forward) > 0.999
                     assert "decoded for this camera's view" in " ".join(text.split())
