@@ -119,7 +119,8 @@ def test_a_run_shown_from_its_ply_follows_the_camera_once_chosen(cut_run, tmp_pa
     mapper = load_mapper(read_run(done))
     mapper.export_ply(done / "point_cloud.ply")  # newer than the checkpoint: the PLY is what is shown
     server = _Browser()
-    w2c, camera = np.eye(4), Camera(500.0, 500.0, 400.0, 300.0, 800, 600)
+    w2c, frame = _test_views(cut_run)[3][0]  # a held-out frame's pose: the map in view
+    camera = frame.camera
     server.camera = BrowserCamera(w2c, camera, moved_at=time.time() - SETTLE_S)
     follow = CameraFollower(server, read_run(done), mapper, None, None)  # no choice offered: the PLY
     assert follow.source() == PLY and not follow() and not server.submitted

@@ -30,7 +30,7 @@ from omegaconf import OmegaConf
 from segs.config import CONF_DIR, make_sequence, user_errors_exit
 from segs.errors import UserInputError
 from segs.viewer.saved_run import SavedRun, read_gaussian_ply, read_run
-from segs.viewer.scene import SETTLE_S, BrowserCamera, KeyframeNode, Snapshot, Splats, Trajectories, decoded_for, thumbnail
+from segs.viewer.scene import BrowserCamera, KeyframeNode, Snapshot, Trajectories, decoded_for, splats_for, thumbnail
 
 log = logging.getLogger("segs.view")
 
@@ -78,8 +78,7 @@ def snapshot(run: SavedRun, mapper, sequence, note: str | None, camera: BrowserC
     if ply:
         splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
     elif mapper is not None:
-        cloud = mapper.gaussians() if camera is None else mapper.gaussians(camera.w2c, camera.camera)
-        splats = Splats.from_cloud(cloud).visible() if cloud is not None else None
+        splats = splats_for(mapper, camera)
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
     trajs = None
     if run.trajectory is not None:
@@ -174,8 +173,8 @@ class CameraFollower:
         """Submit a new snapshot when the source was switched, or, decoding for the camera, the
         camera moved and settled; returns whether one was."""
         source = self.source()
-        camera = self.server.browser_camera() if source == CAMERA and self.args[1] is not None else None
-        moved = camera is not None and camera.moved_at > self.decoded_at and time.time() - camera.moved_at >= SETTLE_S
+        camera = self.server.browser_camera() if source == CAMERA else None
+        moved = camera is not None and camera.settled_after(self.decoded_at)
         if source == self.shown and not moved:
             return False
         if camera is not None:

@@ -27,7 +27,7 @@ from segs.modules.contract import GaussianMapper, to_uint8
 from segs.modules.metrics import psnr
 from segs.trajectory import estimated_c2w
 from segs.viewer.config import ViewerConfig
-from segs.viewer.scene import SETTLE_S, BrowserCamera, KeyframeNode, Snapshot, Splats, Trajectories, decoded_for, thumbnail
+from segs.viewer.scene import BrowserCamera, KeyframeNode, Snapshot, Splats, Trajectories, decoded_for, splats_for, thumbnail
 from segs.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,7 @@ class LiveViewer(L.Callback):
     def camera_moved(self, camera: BrowserCamera | None) -> bool:
         """Whether the browser's camera moved since the latest snapshot and has been still since
         for SETTLE_S."""
-        return camera is not None and camera.moved_at > self._camera_at and time.time() - camera.moved_at >= SETTLE_S
+        return camera is not None and camera.settled_after(self._camera_at)
 
     def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         self.server.serve_selection(lambda kf_id: self._selection(pl_module, kf_id))
@@ -134,9 +134,8 @@ class LiveViewer(L.Callback):
         the browser that moved last (before any reports one: every Gaussian, as exported); with
         test_view, one held-out frame rendered for the panel's PSNR."""
         camera = self.server.browser_camera()
-        cloud = module.gaussians() if camera is None else module.gaussians(camera.w2c, camera.camera)
+        splats = splats_for(module, camera)
         self._camera_at = camera.moved_at if camera is not None else 0.0
-        splats = Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
         self._splats_id += 1
         views = module.training_views()
         for v in views:

@@ -7,12 +7,13 @@ arrays that their owner replaces rather than edits, so drawing never races with 
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from segs.data.frame import Camera
-from segs.modules.contract import MIN_OPACITY, GaussianCloud
+from segs.modules.contract import MIN_OPACITY, GaussianCloud, GaussianMapper
 from segs.trajectory import alignment
 
 
@@ -134,6 +135,18 @@ class BrowserCamera:
     w2c: np.ndarray
     camera: Camera
     moved_at: float
+
+    def settled_after(self, t: float) -> bool:
+        """Whether it moved after time t (time.time()) and has been still since for SETTLE_S."""
+        return self.moved_at > t and time.time() - self.moved_at >= SETTLE_S
+
+
+def splats_for(mapper: GaussianMapper, camera: BrowserCamera | None) -> Splats | None:
+    """The mapper's Gaussians a viewer draws (opacity >= MIN_OPACITY): those a render from the
+    browser's camera draws, decoded for it, or without one every Gaussian as exported; None
+    before the map has any."""
+    cloud = mapper.gaussians() if camera is None else mapper.gaussians(camera.w2c, camera.camera)
+    return Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
 
 
 def decoded_for(camera: BrowserCamera | None) -> str:
