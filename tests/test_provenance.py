@@ -79,3 +79,14 @@ def test_provenance_names_an_unknown_frontend_by_its_class_path(tiny_cfg):
     cfg.slam._target_ = "my.package.MyFrontend"
     p = provenance(cfg, "mono")
     assert p["frontend"] == "my.package.MyFrontend" and p["sensor"] == "mono" and p["raster_backend"] is None
+
+
+def test_a_run_without_a_test_view_says_why(tiny_cfg, capsys):
+    # every frame a keyframe and none held out: nothing left to test on (a sparse keyframe sequence)
+    cfg = tiny_cfg("trainer.max_steps=10", "slam.keyframe_every=1", "eval.holdout_every=0", "callbacks.periodic_checkpoint.every_n_steps=0",
+                   "eval.write_ply=false")  # fmt: skip
+    train(cfg)
+    m = json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text())
+    assert m["test_views"] == 0 and m["psnr"] is None and "eval.holdout_every" in m["test_note"]
+    out = capsys.readouterr().out
+    assert "test views 0: no test view: every tracked frame was trained on" in out and "n/a dB" not in out

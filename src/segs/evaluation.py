@@ -186,6 +186,9 @@ def evaluate(module: GaussianMapper, sequence, run: RunState, eval_cfg: EvalConf
         "status": "finished",
         "provenance": mapper_provenance(module, provenance),
     }
+    if not test:
+        metrics["test_note"] = ("no test view: every tracked frame was trained on (each became a keyframe); "
+                                "eval.holdout_every=N keeps every N-th frame out of training to test on")
     if ate_result.get("reason") == GROUND_TRUTH_POSES:
         metrics["ate_note"] = "n/a: the frontend replays the ground-truth poses (slam=known_poses); no trajectory was estimated"
     elif summary["lost_frames"]:

@@ -223,11 +223,18 @@ def _of_scheduled(m: dict) -> str:
     return f" of {n} scheduled" if n and m["iterations"] < n else ""
 
 
+def _test_line(m: dict) -> str:
+    """'  test views 15: PSNR 25.21 dB, SSIM 0.888, LPIPS n/a', or why there is none."""
+    if not m["test_views"]:
+        return f"  test views 0: {m.get('test_note', 'none')}\n"
+    return (f"  test views {m['test_views']}: PSNR {_fmt(m['psnr'], '.2f')} dB, SSIM {_fmt(m['ssim'], '.3f')}, "
+            f"LPIPS {_fmt(m['lpips'], '.3f')}\n")
+
+
 def _print_summary(out: Path, m: dict) -> None:
     print(
         f"\nsegs: results in {out}\n"
-        f"  test views {m['test_views']}: PSNR {_fmt(m['psnr'], '.2f')} dB, SSIM {_fmt(m['ssim'], '.3f')}, "
-        f"LPIPS {_fmt(m['lpips'], '.3f')}\n"
+        + _test_line(m)
         + (f"  {m['lossless_views']} of them also lossless: PSNR {m['psnr_lossless']:.2f} dB against the lossless frames "
            f"({m['psnr_jpeg_on_lossless_views']:.2f} dB against the JPEGs, which score {m['psnr_jpeg_vs_lossless']:.2f} dB)\n"
            if m.get("lossless_views") else "")
