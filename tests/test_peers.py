@@ -147,6 +147,9 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     assert peers.segs_steps(900.0, [pilot, r8]) == int(12105 / 450 * 895 * peers.AIM)  # no earlier run but the pilot
     assert peers.fits({"method": "segs", "schedule_done": 1.0, "points": [{"seconds": 110.0}]}, 120.0)
     assert not peers.fits({"method": "segs", "schedule_done": 0.8, "points": [{"seconds": 120.0}]}, 120.0)
+    # stopped by the budget: the schedules' end skipped where they end at max_steps, not where they are longer
+    stopped = {"method": "segs", "schedule_done": 0.9, "max_steps": 3000, "points": [{"seconds": 120.0}]}
+    assert not peers.fits({**stopped, "scheduled_steps": 3000}, 120.0) and peers.fits({**stopped, "scheduled_steps": 6750}, 120.0)
     assert not peers.fits({"method": "opensplat", "points": [{"seconds": 60.0}]}, 120.0)
 
 
