@@ -90,3 +90,4 @@ def test_a_run_without_a_test_view_says_why(tiny_cfg, capsys):
     assert m["test_views"] == 0 and m["psnr"] is None and "eval.holdout_every" in m["test_note"]
     out = capsys.readouterr().out
     assert "test views 0: no test view: every tracked frame was trained on" in out and "n/a dB" not in out
+    assert "renders/" not in out and not (Path(cfg.paths.output_dir) / "renders").exists()  # nothing written there: not listed

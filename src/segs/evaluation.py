@@ -44,7 +44,8 @@ def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: 
     lpips = make_lpips(lpips_weights)
     lossless = getattr(sequence, "lossless_rgb", None)  # idx -> lossless colour or None
     keep = set(np.asarray(test)[np.linspace(0, len(test) - 1, save_renders).round().astype(int)]) if test and save_renders else set()
-    (out / "renders").mkdir(parents=True, exist_ok=True)
+    if keep:
+        (out / "renders").mkdir(parents=True, exist_ok=True)
     rows = []
     for idx in tqdm(test, desc="test views", disable=not progress, leave=False):
         if watch is not None:
@@ -68,7 +69,7 @@ def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: 
             f.write(f"{r['frame']},{r['psnr']:.4f},{r['ssim']:.5f},{lp}\n")
     mean = lambda k: float(np.mean([r[k] for r in rows])) if rows and rows[0][k] is not None else None  # noqa: E731
     out = {"psnr": mean("psnr"), "ssim": mean("ssim"), "lpips": mean("lpips"), "test_views": len(rows),
-           "active_gaussians": mean("active")}  # fmt: skip
+           "active_gaussians": mean("active"), "renders_saved": len(keep)}  # fmt: skip
     clean = [r for r in rows if "psnr_lossless" in r]
     if clean:  # PSNR against lossless frames, beside the same views' PSNR against the JPEGs
         out.update({"lossless_views": len(clean), "psnr_lossless": float(np.mean([r["psnr_lossless"] for r in clean])),

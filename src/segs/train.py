@@ -244,9 +244,14 @@ def _print_summary(out: Path, m: dict) -> None:
         + (f"  {m['frames_note']}\n" if m.get("frames_note") else "")
         + (f"  {m['checkpoint_note']}\n" if m.get("checkpoint_note") else "")
         + _ply_line(m)
-        + f"  metrics.json, trajectory.txt, {'point_cloud.ply, ' if m.get('ply_gaussians') is not None else ''}renders/"
-        + (", checkpoints/final.ckpt" if m.get("final_checkpoint") else "")
+        + "  " + ", ".join(_written(m))
     )
+
+
+def _written(m: dict) -> list[str]:
+    """The run folder's result files the summary lists: those this run wrote."""
+    return (["metrics.json", "trajectory.txt"] + (["point_cloud.ply"] if m.get("ply_gaussians") is not None else [])
+            + (["renders/"] if m.get("renders_saved") else []) + (["checkpoints/final.ckpt"] if m.get("final_checkpoint") else []))
 
 
 def _ply_line(m: dict) -> str:
