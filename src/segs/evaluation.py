@@ -44,8 +44,9 @@ def render_test_views(module: GaussianMapper, sequence, trajectory: dict, test: 
     lpips = make_lpips(lpips_weights)
     lossless = getattr(sequence, "lossless_rgb", None)  # idx -> lossless colour or None
     keep = set(np.asarray(test)[np.linspace(0, len(test) - 1, save_renders).round().astype(int)]) if test and save_renders else set()
+    out.mkdir(parents=True, exist_ok=True)
     if keep:
-        (out / "renders").mkdir(parents=True, exist_ok=True)
+        (out / "renders").mkdir(exist_ok=True)
     rows = []
     for idx in tqdm(test, desc="test views", disable=not progress, leave=False):
         if watch is not None:
