@@ -392,7 +392,8 @@ def fits(run: dict, budget_s: float) -> bool:
     inside them wherever it stops, so one stopped by the budget at step n is the run sized to n
     steps; where the schedules end at max_steps, a run stopped early skipped their end)."""
     seconds = run["points"][-1]["seconds"]
-    done = run["method"] == "opensplat" or run["schedule_done"] >= 1.0 or run.get("scheduled_steps", 0) > run.get("max_steps", 0) > 0
+    cut_inside = run.get("scheduled_steps", 0) > run.get("max_steps", float("inf"))  # schedules longer than max_steps
+    done = run["method"] == "opensplat" or run["schedule_done"] >= 1.0 or cut_inside
     return done and FIT_LOW * budget_s <= seconds <= FIT_HIGH * budget_s
 
 

@@ -226,7 +226,7 @@ def _of_scheduled(m: dict) -> str:
 def _test_line(m: dict) -> str:
     """'  test views 15: PSNR 25.21 dB, SSIM 0.888, LPIPS n/a', or why there is none."""
     if not m["test_views"]:
-        return f"  test views 0: {m.get('test_note', 'none')}\n"
+        return f"  test views 0: {m['test_note']}\n"  # evaluate() writes it whenever there is no test view
     return (f"  test views {m['test_views']}: PSNR {_fmt(m['psnr'], '.2f')} dB, SSIM {_fmt(m['ssim'], '.3f')}, "
             f"LPIPS {_fmt(m['lpips'], '.3f')}\n")
 
