@@ -260,7 +260,7 @@ def test_a_browser_shows_the_map_growing_during_training(tmp_path):
                 if step == stops[-1]:  # the browser's camera, where the first snapshot put it, read back
                     framed, c2w = viewer.server.framed, None
                     for _ in range(100):  # the browser may still report its camera from before the framing
-                        c2w = np.linalg.inv(viewer.server.browser_camera().w2c)
+                        c2w = np.linalg.inv(next(iter(viewer.server.browser_cameras().values())).w2c)
                         if np.allclose(c2w[:3, 3], framed.position, atol=1e-3 * framed.extent):
                             break
                         time.sleep(0.2)
@@ -279,6 +279,59 @@ def test_a_browser_shows_the_map_growing_during_training(tmp_path):
     assert blank.var() < 50, "the canvas is not blank before the first snapshot"
     assert first.var() > 100 and last.var() > 100, (first.var(), last.var())  # the map is drawn
     assert np.abs(first - last).mean() > 1.0  # and it changed between the two steps
+
+
+def _until(what, timeout: float = 60.0, every=None):
+    """Wait for what() to be true (calling every() between tries); what's last value."""
+    end = time.time() + timeout
+    while not (value := what()) and time.time() < end:
+        if every is not None:
+            every()
+        time.sleep(0.1)
+    return value
+
+
+@pytest.mark.slow
+def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, tmp_path):
+    sync = _browser_or_skip()
+    from segs.view import load_mapper
+    from segs.viewer.scene import OWN, splats_for
+
+    cut = tmp_path / "cut"
+    shutil.copytree(train_run, cut)
+    (cut / "point_cloud.ply").unlink()  # shown from its checkpoint, decoded for each browser's camera
+    server, _, follow = _serve(cut)
+    mapper = load_mapper(read_run(cut))
+    views = [np.linalg.inv(v.w2c.numpy().astype(np.float64)) for v in mapper.training_views()]
+    try:
+        with sync.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=BROWSER_ARGS)
+            pages, ids = [], []
+            for _ in range(2):
+                pages.append(browser.new_page(viewport={"width": 900, "height": 640}))
+                pages[-1].goto(server.url)
+                pages[-1].wait_for_selector("canvas", timeout=60_000)
+                assert _until(lambda: len(server.server.get_clients()) == len(pages))
+                ids.append(max(set(server.server.get_clients()) - set(ids)))
+            clients = server.server.get_clients()
+            for client_id, c2w in zip(ids, (views[0], views[-1])):  # two keyframes' poses, one per browser
+                cam = clients[client_id].camera
+                cam.up_direction = tuple(-c2w[:3, 1])
+                cam.position, cam.look_at = tuple(c2w[:3, 3]), tuple(c2w[:3, 3] + c2w[:3, 2])
+            # each browser's camera reported back, settled, and decoded for
+            assert _until(lambda: set(server.own_nodes) == set(ids) and server.wait_idle(5), every=follow), server.own_nodes
+            cameras = server.browser_cameras()
+            drawn = {i: len(splats_for(mapper, cameras[i])) for i in ids}
+            assert drawn[ids[0]] != drawn[ids[1]]  # two views, two decodings
+            for page, client_id in zip(pages, ids):
+                own = f"{drawn[client_id]} ({OWN})"
+                assert _until(lambda: own in " ".join(page.inner_text("body").split()), timeout=30), page.inner_text("body")
+                assert len(server.own_nodes[client_id].buffer) == drawn[client_id]
+            pages[0].close()  # a browser gone: its decoding is dropped, the other keeps its own
+            assert _until(lambda: ids[0] not in server.own_nodes) and ids[1] in server.own_nodes
+            browser.close()
+    finally:
+        server.close()
 
 
 def test_only_gaussians_that_can_change_a_pixel_are_sent():

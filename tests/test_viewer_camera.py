@@ -22,7 +22,7 @@ viser = pytest.importorskip("viser", reason='the viewer extra is not installed (
 from segs.data.frame import Camera  # noqa: E402
 from segs.modules.scene_model import View  # noqa: E402
 from segs.raster import EPS2D  # noqa: E402
-from segs.viewer.scene import SETTLE_S, BrowserCamera, Splats, browser_camera  # noqa: E402
+from segs.viewer.scene import EVERY_ONE, SETTLE_S, BrowserCamera, Splats, browser_camera  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -73,20 +73,25 @@ def test_the_gaussians_for_a_camera_are_what_a_render_from_it_draws(cut_run):
 
 
 class _Browser:
-    """A server with one browser whose camera the test sets (ViewerServer's browser_camera / submit)."""
+    """A server with browsers whose cameras the test sets, client id -> camera (ViewerServer's
+    browser_cameras / submit)."""
 
     def __init__(self):
-        self.camera: BrowserCamera | None = None
+        self.cameras: dict[int, BrowserCamera] = {}
         self.submitted = []
 
-    def browser_camera(self):
-        return self.camera
+    def browser_cameras(self):
+        return dict(self.cameras)
 
     def submit(self, snapshot):
         self.submitted.append(snapshot)
 
 
-def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_a_moved_camera(cut_run):
+def _same(a: Splats, b: Splats) -> bool:
+    return len(a) == len(b) and np.array_equal(a.means, b.means) and np.array_equal(a.colors, b.colors)
+
+
+def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_each_moved_camera(cut_run):
     from segs.view import CAMERA, CameraFollower
 
     run, mapper, sequence, views = _test_views(cut_run)
@@ -94,20 +99,23 @@ def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_a_moved_camera(cut
     follow = CameraFollower(server, run, mapper, sequence, None)
     assert follow.source() == CAMERA and not follow()  # no browser camera yet
     w2c, frame = views[0]
-    server.camera = BrowserCamera(w2c, frame.camera, moved_at=time.time())
+    server.cameras[7] = BrowserCamera(w2c, frame.camera, moved_at=time.time())
     assert not follow()  # still moving: not decoded at every frame of a drag
-    server.camera.moved_at -= SETTLE_S
+    server.cameras[7].moved_at -= SETTLE_S
     assert follow() and not follow()  # once, until it moves again
     shown = server.submitted[-1]
-    expected = Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible()
-    assert np.array_equal(shown.splats.means, expected.means) and np.array_equal(shown.splats.colors, expected.colors)
-    assert "decoded for this camera's view" in shown.panel["Gaussians drawn (opacity >= 1/255)"]
-    w2c2, frame2 = views[-1]
-    server.camera = BrowserCamera(w2c2, Camera(500.0, 500.0, 400.0, 300.0, 800, 600), moved_at=time.time() - SETTLE_S)
-    assert follow()
-    moved = server.submitted[-1]
-    assert moved is not shown and moved.splats_id != shown.splats_id
-    assert len(moved.splats) != len(shown.splats) or not np.array_equal(moved.splats.means, shown.splats.means)
+    assert shown.splats is None and set(shown.per_browser) == {7}  # the shared Gaussians unchanged, this browser's own
+    assert _same(shown.per_browser[7], Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible())
+    # a second browser, elsewhere: decoded for it alone; the first keeps what it was sent
+    w2c2, camera2 = views[-1][0], Camera(500.0, 500.0, 400.0, 300.0, 800, 600)
+    server.cameras[8] = BrowserCamera(w2c2, camera2, moved_at=time.time() - SETTLE_S)
+    assert follow() and not follow()
+    second = server.submitted[-1]
+    assert set(second.per_browser) == {8} and second.splats is None and second.splats_id != shown.splats_id
+    assert _same(second.per_browser[8], Splats.from_cloud(mapper.gaussians(w2c2, camera2)).visible())
+    assert not _same(second.per_browser[8], shown.per_browser[7])
+    server.cameras[7] = BrowserCamera(w2c2, frame.camera, moved_at=time.time() - SETTLE_S)  # the first moves
+    assert follow() and set(server.submitted[-1].per_browser) == {7}
 
 
 def test_a_run_shown_from_its_ply_follows_the_camera_once_chosen(cut_run, tmp_path):
@@ -121,7 +129,7 @@ def test_a_run_shown_from_its_ply_follows_the_camera_once_chosen(cut_run, tmp_pa
     server = _Browser()
     w2c, frame = _test_views(cut_run)[3][0]  # a held-out frame's pose: the map in view
     camera = frame.camera
-    server.camera = BrowserCamera(w2c, camera, moved_at=time.time() - SETTLE_S)
+    server.cameras[3] = BrowserCamera(w2c, camera, moved_at=time.time() - SETTLE_S)
     follow = CameraFollower(server, read_run(done), mapper, None, None)  # no choice offered: the PLY
     assert follow.source() == PLY and not follow() and not server.submitted
     choice = SimpleNamespace(value=PLY)  # the browser's dropdown
@@ -129,20 +137,24 @@ def test_a_run_shown_from_its_ply_follows_the_camera_once_chosen(cut_run, tmp_pa
     assert not follow() and not server.submitted
     choice.value = CAMERA
     assert follow() and not follow()
-    decoded = Splats.from_cloud(mapper.gaussians(w2c, camera)).visible()
-    assert np.array_equal(server.submitted[-1].splats.means, decoded.means)
+    switched = server.submitted[-1]  # the shared Gaussians (for browsers without a camera) and this browser's own
+    assert _same(switched.per_browser[3], Splats.from_cloud(mapper.gaussians(w2c, camera)).visible())
+    assert _same(switched.splats, Splats.from_cloud(mapper.gaussians()).visible()) and switched.splats_label == EVERY_ONE
     choice.value = PLY
     assert follow() and not follow()
     exported = read_gaussian_ply(done / "point_cloud.ply").visible()
-    assert np.array_equal(server.submitted[-1].splats.means, exported.means) and len(server.submitted) == 2
-    assert server.submitted[-1].panel["Gaussians drawn (opacity >= 1/255)"].endswith("(point_cloud.ply)")
+    back = server.submitted[-1]  # new shared Gaussians and no browser's own: every browser is shown the PLY
+    assert _same(back.splats, exported) and not back.per_browser and len(server.submitted) == 2
+    assert back.splats_label == "point_cloud.ply"
 
 
 class _Connected(_Browser):
-    """The same browser, connected (what LiveViewer asks of its server)."""
+    """The same browsers, `connected` of them (what LiveViewer asks of its server)."""
+
+    connected = 1
 
     def clients(self) -> int:
-        return 1
+        return self.connected
 
     def serve_selection(self, provider) -> bool:
         return False
@@ -185,24 +197,37 @@ def test_training_takes_a_snapshot_for_a_moved_camera_before_its_period(cut_run)
     render_image = mapper.render_image
     mapper.render_image = lambda *a, **k: renders.append(1) or render_image(*a, **k)  # the panel's test frames
     step()  # the first snapshot: no browser camera known yet
-    assert len(server.submitted) == 1 and "first keyframe" in server.submitted[0].panel["Gaussians drawn (opacity >= 1/255)"]
+    first = server.submitted[0]
+    assert len(server.submitted) == 1 and not first.per_browser and first.splats_label == EVERY_ONE
+    assert _same(first.splats, Splats.from_cloud(mapper.gaussians()).visible())
     assert len(renders) == 1 and "1 held-out frames" in server.submitted[0].panel["test PSNR so far"]
     step()
     assert len(server.submitted) == 1  # refresh_s not over, the camera unknown
     w2c, frame = views[0]
-    server.camera = BrowserCamera(w2c, frame.camera, moved_at=time.time())
+    server.cameras[5] = BrowserCamera(w2c, frame.camera, moved_at=time.time())
     step()
     assert len(server.submitted) == 1  # moving
-    server.camera.moved_at -= SETTLE_S
+    server.cameras[5].moved_at -= SETTLE_S
     time.sleep(viewer.min_period())
     step()
     assert len(server.submitted) == 2
     shown = server.submitted[-1]
-    expected = Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible()
-    assert np.array_equal(shown.splats.means, expected.means) and shown.splats_id != server.submitted[0].splats_id
-    assert "decoded for this camera's view" in shown.panel["Gaussians drawn (opacity >= 1/255)"]
+    assert shown.splats is None and set(shown.per_browser) == {5}  # this browser's own, the shared ones unchanged
+    assert _same(shown.per_browser[5], Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible())
     # no test frame rendered for a moved camera: the panel keeps the last one's PSNR
     assert len(renders) == 1 and shown.panel["test PSNR so far"] == server.submitted[0].panel["test PSNR so far"]
     assert len(viewer.snapshot_ms) == 2 and viewer.camera_ms == viewer.snapshot_ms[1:]
     step()
     assert len(server.submitted) == 2  # the same camera: back to refresh_s
+    server.connected, w2c2 = 2, views[-1][0]
+    server.cameras[6] = BrowserCamera(w2c2, frame.camera, moved_at=time.time() - SETTLE_S)  # a second browser
+    time.sleep(viewer.min_period())
+    step()
+    assert len(server.submitted) == 3 and set(server.submitted[-1].per_browser) == {6}  # decoded for it alone
+    viewer.refresh(trainer, mapper)  # a regular snapshot: every browser's camera, and no shared decoding (each has its own)
+    regular = server.submitted[-1]
+    assert set(regular.per_browser) == {5, 6} and regular.splats is None
+    assert _same(regular.per_browser[6], Splats.from_cloud(mapper.gaussians(w2c2, frame.camera)).visible())
+    server.connected = 3  # a third, without a camera yet: the shared Gaussians again
+    viewer.refresh(trainer, mapper)
+    assert set(server.submitted[-1].per_browser) == {5, 6} and _same(server.submitted[-1].splats, first.splats)

@@ -3,7 +3,7 @@
 Any run folder of segs.train or segs.track, finished or interrupted: the Gaussians
 (point_cloud.ply, as the run exported them; without it or when a checkpoint is newer, an
 interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, for
-the browser's camera: what a render from there draws, decoded again when the camera has moved
+each browser's camera: what a render from there draws, decoded again when that camera has moved
 and settled; a run with both: the PLY, or the checkpoint's decoding chosen in the panel), the
 SLAM map points (map_points.ply), the estimated trajectory
 (trajectory.txt or trajectory_partial.txt) beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
@@ -30,7 +30,7 @@ from omegaconf import OmegaConf
 from segs.config import CONF_DIR, make_sequence, user_errors_exit
 from segs.errors import UserInputError
 from segs.viewer.saved_run import SavedRun, read_gaussian_ply, read_run
-from segs.viewer.scene import BrowserCamera, KeyframeNode, Snapshot, Trajectories, decoded_for, splats_for, thumbnail
+from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, thumbnail
 
 log = logging.getLogger("segs.view")
 
@@ -69,24 +69,27 @@ def shows_ply(run: SavedRun) -> bool:
     return run.ply is not None and (run.checkpoint is None or run.ply.stat().st_mtime >= run.checkpoint.stat().st_mtime)
 
 
-def snapshot(run: SavedRun, mapper, sequence, note: str | None, camera: BrowserCamera | None = None, splats_id: int = 1,
-             ply: bool | None = None) -> Snapshot:
-    """Everything the run folder shows, as one snapshot, numbered splats_id: the Gaussians of its
-    point_cloud.ply (ply; None: when shows_ply), else the checkpoint's, decoded for `camera`
-    (without one: every Gaussian, for the first keyframe)."""
+def snapshot(run: SavedRun, mapper, sequence, note: str | None, cameras: dict[int, BrowserCamera] | None = None, splats_id: int = 1,
+             ply: bool | None = None, shared: bool = True) -> Snapshot:
+    """Everything the run folder shows, as one snapshot, numbered splats_id. The Gaussians every
+    browser sees (with shared; without: unchanged): those of its point_cloud.ply (ply; None: when
+    shows_ply), else the checkpoint's, every one decoded for the first keyframe; without the PLY,
+    the checkpoint's decoded for each of `cameras` (client id -> camera) too."""
     splats, ply = None, shows_ply(run) if ply is None else ply
-    if ply:
+    if shared and ply:
         splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
-    elif mapper is not None:
-        splats = splats_for(mapper, camera)
+    elif shared and mapper is not None:
+        splats = splats_for(mapper, None)
+    per_browser = {} if ply or mapper is None else {cid: splats_for(mapper, cam) for cid, cam in (cameras or {}).items()}
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
     trajs = None
     if run.trajectory is not None:
         gt = (np.asarray(sequence.timestamps), sequence.gt_poses) if sequence is not None else (None, None)
         trajs = Trajectories(run.trajectory[0], run.trajectory[1], gt[0], gt[1], align)
     points = run.points or (None, None)
-    return Snapshot(splats=splats, splats_id=splats_id, points=points[0], point_colors=points[1], trajectories=trajs,
-                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, splats, note, camera, ply))  # fmt: skip
+    return Snapshot(splats=splats, splats_id=splats_id, splats_label="point_cloud.ply" if ply else EVERY_ONE, per_browser=per_browser,
+                    points=points[0], point_colors=points[1], trajectories=trajs, keyframes=keyframes(run, mapper, sequence),
+                    panel=panel(run, mapper, note))  # fmt: skip
 
 
 def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
@@ -105,7 +108,7 @@ def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
     return out
 
 
-def panel(run: SavedRun, mapper, splats, note: str | None, camera: BrowserCamera | None = None, ply: bool = False) -> dict[str, str]:
+def panel(run: SavedRun, mapper, note: str | None) -> dict[str, str]:
     r = run.results
     fmt = lambda key, spec, unit="": "n/a" if r.get(key) is None else f"{r[key]:{spec}}{unit}"  # noqa: E731
     rows = {"run": f"{run.kind} ({run.status.replace('_', ' ')}): {run.path.name}"}
@@ -115,8 +118,6 @@ def panel(run: SavedRun, mapper, splats, note: str | None, camera: BrowserCamera
         rows["test PSNR so far"] = f"{fmt('psnr', '.2f', ' dB')} ({r.get('test_views', 0)} test views)" if r else "n/a (not evaluated)"
         rows["anchors"] = str(counts.anchors if counts else r.get("anchors", "n/a"))
         rows["Gaussians"] = str(counts.gaussians if counts else r.get("gaussians", "n/a"))
-        shown = "point_cloud.ply" if ply else decoded_for(camera) if mapper is not None else "none"
-        rows["Gaussians drawn (opacity >= 1/255)"] = f"{len(splats) if splats is not None else 0} ({shown})"
         rows["training"] = fmt("iterations_per_s", ".1f", " steps/s")
     else:
         rows["Gaussians"] = "0 (tracking only)"
@@ -155,7 +156,7 @@ PLY, CAMERA = "point_cloud.ply (as a 3D-GS viewer shows it)", "decoded for this 
 
 class CameraFollower:
     """What segs.view draws of the map, kept up to date: the checkpoint's Gaussians decoded again
-    for the browser's camera once it has moved and settled, or the run's point_cloud.ply (the
+    for each browser's camera once it has moved and settled, or the run's point_cloud.ply (the
     same from everywhere). choice: the browser's dropdown between the two (PLY / CAMERA) when the
     run has both, else None (a run with a current PLY shows it; one without, its checkpoint)."""
 
@@ -163,24 +164,26 @@ class CameraFollower:
         self.server, self.args, self.choice = server, (run, mapper, sequence, note), choice
         self.fixed = PLY if shows_ply(run) or mapper is None else CAMERA
         self.shown = self.fixed  # what serve's first snapshot drew
-        self.decoded_at = 0.0  # when the camera last decoded for had moved
+        self.decoded_at: dict[int, float] = {}  # client id -> when its camera had moved, at its latest decoding
         self.snapshots = 1  # submitted so far (serve's first one included)
 
     def source(self) -> str:
         return self.choice.value if self.choice is not None else self.fixed
 
     def __call__(self) -> bool:
-        """Submit a new snapshot when the source was switched, or, decoding for the camera, the
-        camera moved and settled; returns whether one was."""
+        """Submit a new snapshot when the source was switched (the shared Gaussians, and with the
+        checkpoint's decoding one for each browser's camera), or, decoding for the cameras, when
+        browsers' cameras moved and settled (theirs alone); returns whether one was."""
         source = self.source()
-        camera = self.server.browser_camera() if source == CAMERA else None
-        moved = camera is not None and camera.settled_after(self.decoded_at)
-        if source == self.shown and not moved:
-            return False
-        if camera is not None:
-            self.decoded_at = camera.moved_at
+        switched = source != self.shown
+        cameras = self.server.browser_cameras() if source == CAMERA else {}
+        if not switched:
+            cameras = {cid: cam for cid, cam in cameras.items() if cam.settled_after(self.decoded_at.get(cid, 0.0))}
+            if not cameras:
+                return False
+        self.decoded_at.update({cid: cam.moved_at for cid, cam in cameras.items()})
         self.shown, self.snapshots = source, self.snapshots + 1
-        self.server.submit(snapshot(*self.args, camera=camera, splats_id=self.snapshots, ply=source == PLY))
+        self.server.submit(snapshot(*self.args, cameras=cameras, splats_id=self.snapshots, ply=source == PLY, shared=switched))
         return True
 
 

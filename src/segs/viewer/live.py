@@ -4,10 +4,10 @@
 Both take a snapshot at most every `viewer.refresh_s` seconds (training: and with at most
 `viewer.max_share` of the training thread's time) and only while a browser is connected; training
 takes one sooner when a browser's camera has moved and settled (within the same share). On the
-training thread, between two steps, the Gaussians are decoded once for the browser's camera
+training thread, between two steps, the Gaussians are decoded for each browser's camera
 (GaussianMapper.gaussians: what a render from there draws; a SEGS map decodes its Gaussians per
-view), one held-out frame is rendered for the panel's PSNR, and the copies are
-handed to the server's drawing thread, which does everything else (covariances, the ground-truth
+view; a snapshot for moved cameras decodes for those alone), one held-out frame is rendered for
+the panel's PSNR, and the copies are handed to the server's drawing thread, which does everything else (covariances, the ground-truth
 alignment, encoding, sending). A keyframe selected in a browser is rendered between two steps.
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ from segs.modules.contract import GaussianMapper, to_uint8
 from segs.modules.metrics import psnr
 from segs.trajectory import estimated_c2w
 from segs.viewer.config import ViewerConfig
-from segs.viewer.scene import BrowserCamera, KeyframeNode, Snapshot, Splats, Trajectories, decoded_for, splats_for, thumbnail
+from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, thumbnail
 from segs.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,8 @@ class LiveViewer(L.Callback):
         self._turn = 0
         self._splats_id = 0
         self._thumbs: dict[int, np.ndarray] = {}
-        self._camera_at = 0.0  # when the browser camera of the latest snapshot had moved (0: none known)
+        self._decoded_at: dict[int, float] = {}  # client id -> when its camera had moved, at its latest decoding
+        self._shared_sent = False  # whether the shared Gaussians (for browsers without a camera) were decoded once
 
     def on_train_start(self, trainer, pl_module) -> None:
         self.bridge = next((c for c in trainer.callbacks if isinstance(c, SlamBridge)), None)
@@ -95,10 +96,10 @@ class LiveViewer(L.Callback):
         """The shortest gap that keeps snapshots within max_share of the training thread."""
         return (self.snapshot_ms[-1] / 1000.0 if self.snapshot_ms else 0.0) / self.cfg.max_share
 
-    def camera_moved(self, camera: BrowserCamera | None) -> bool:
-        """Whether the browser's camera moved since the latest snapshot and has been still since
-        for SETTLE_S."""
-        return camera is not None and camera.settled_after(self._camera_at)
+    def moved_cameras(self, cameras: dict[int, BrowserCamera]) -> dict[int, BrowserCamera]:
+        """The browsers' cameras (client id -> camera) that moved since their latest decoding and
+        have been still since for SETTLE_S."""
+        return {cid: cam for cid, cam in cameras.items() if cam.settled_after(self._decoded_at.get(cid, 0.0))}
 
     def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         self.server.serve_selection(lambda kf_id: self._selection(pl_module, kf_id))
@@ -107,10 +108,11 @@ class LiveViewer(L.Callback):
             return
         since = now - self._last
         due = since >= self.period()
-        if not due and not (since >= self.min_period() and self.camera_moved(self.server.browser_camera())):
+        moved = {} if due or since < self.min_period() else self.moved_cameras(self.server.browser_cameras())
+        if not due and not moved:
             return
         self._last = now
-        self.refresh(trainer, pl_module, test_view=due)  # a moved camera's snapshot renders no test frame
+        self.refresh(trainer, pl_module, test_view=due, cameras=None if due else moved)  # moved cameras: no test frame
         self.snapshot_ms.append((time.perf_counter() - now) * 1000.0)
         if not due:
             self.camera_ms.append(self.snapshot_ms[-1])
@@ -129,13 +131,19 @@ class LiveViewer(L.Callback):
         close(self.server, trainer.default_root_dir)
 
     # -- one snapshot ---------------------------------------------------------------------------
-    def refresh(self, trainer, module: GaussianMapper, test_view: bool = True) -> None:
-        """Take a snapshot now and hand it to the server: the Gaussians decoded for the camera of
-        the browser that moved last (before any reports one: every Gaussian, as exported); with
+    def refresh(self, trainer, module: GaussianMapper, test_view: bool = True, cameras: dict[int, BrowserCamera] | None = None) -> None:
+        """Take a snapshot now and hand it to the server: the Gaussians decoded for each of
+        `cameras` (client id -> camera; None: every browser that reported one, and the shared
+        Gaussians, every one as exported, when a browser has not or none were sent yet); with
         test_view, one held-out frame rendered for the panel's PSNR."""
-        camera = self.server.browser_camera()
-        splats = splats_for(module, camera)
-        self._camera_at = camera.moved_at if camera is not None else 0.0
+        everyone = cameras is None
+        cameras = self.server.browser_cameras() if everyone else cameras
+        per_browser = {cid: splats_for(module, cam) for cid, cam in cameras.items()}
+        self._decoded_at.update({cid: cam.moved_at for cid, cam in cameras.items()})
+        splats = None
+        if everyone and (not self._shared_sent or self.server.clients() > len(cameras)):
+            splats = splats_for(module, None)
+            self._shared_sent = splats is not None
         self._splats_id += 1
         views = module.training_views()
         for v in views:
@@ -146,15 +154,14 @@ class LiveViewer(L.Callback):
         bridge = self.bridge
         points: MapPointLog | None = bridge.map_points if bridge is not None else None
         self.server.submit(Snapshot(
-            splats=splats, splats_id=self._splats_id,
+            splats=splats, splats_id=self._splats_id, splats_label=EVERY_ONE, per_browser=per_browser,
             points=None if points is None else points.points.copy(),
             point_colors=None if points is None else points.colors.copy(),
             trajectories=trajectories(self.sequence, bridge.run.trajectory(), self.align) if bridge is not None else None,
-            keyframes=keyframes, panel=self._panel(trainer, module, splats, camera, test_view),
+            keyframes=keyframes, panel=self._panel(trainer, module, test_view),
         ))  # fmt: skip
 
-    def _panel(self, trainer, module: GaussianMapper, splats: Splats | None, camera: BrowserCamera | None,
-               test_view: bool = True) -> dict[str, str]:
+    def _panel(self, trainer, module: GaussianMapper, test_view: bool = True) -> dict[str, str]:
         counts, bridge = module.counts(), self.bridge
         step, now = trainer.global_step, time.perf_counter()
         rate = (step - self._last_step) / (now - self._t_step) if now > self._t_step and step > self._last_step else None
@@ -168,7 +175,6 @@ class LiveViewer(L.Callback):
             "keyframes (training views)": f"{len(run.keyframe_frames()) if run else 0} ({counts.training_views})",
             "anchors": str(counts.anchors),
             "Gaussians": str(counts.gaussians),
-            "Gaussians drawn (opacity >= 1/255)": f"{len(splats) if splats is not None else 0} ({decoded_for(camera)})",
             "map points": str(len(bridge.map_points) if bridge is not None else 0),
             "frames tracked": f"{tracked} of {len(self.sequence)}",
             "tracking": _fps(run.tracking_fps() if run is not None else None),

@@ -89,17 +89,26 @@ class Trajectories:
         return (self.gt_c2w[ok, :3, 3] - t) @ r / s
 
 
+DRAWN_ROW = "Gaussians drawn (opacity >= 1/255)"  # the panel's row of what a browser draws (the server writes it per browser)
+
+
 @dataclass
 class Snapshot:
     """One state of a run.
 
-    splats: the Gaussians or None (tracking-only run, nothing mapped yet); splats_id changes
-    when they do (the server sends them again only then). points [M,3] / point_colors [M,3] in
-    [0,1]: the SLAM map points. panel: label -> value, in order (markdown table of the page).
+    splats: the Gaussians every browser is shown unless it has its own, or None (a tracking-only
+    run, nothing mapped yet, or the shared ones unchanged); splats_id changes when they do (the
+    server sends them again only then); splats_label: what they were decoded for (the panel's
+    words). per_browser: client id -> the Gaussians decoded for that browser's camera, drawn for
+    it alone; a browser not in it keeps its own unless the snapshot brings new shared splats.
+    points [M,3] / point_colors [M,3] in [0,1]: the SLAM map points. panel: label -> value, in
+    order (markdown table of the page; the server adds DRAWN_ROW after "Gaussians").
     """
 
     splats: Splats | None = None
     splats_id: int = 0
+    splats_label: str = ""
+    per_browser: dict[int, Splats | None] = field(default_factory=dict)
     points: np.ndarray | None = None
     point_colors: np.ndarray | None = None
     trajectories: Trajectories | None = None
@@ -149,9 +158,8 @@ def splats_for(mapper: GaussianMapper, camera: BrowserCamera | None) -> Splats |
     return Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
 
 
-def decoded_for(camera: BrowserCamera | None) -> str:
-    """The panel's words for what the drawn Gaussians of a map were decoded for."""
-    return "every one, decoded for the first keyframe" if camera is None else "decoded for this camera's view"
+EVERY_ONE = "every one, decoded for the first keyframe"  # what the shared Gaussians of a map are
+OWN = "decoded for this camera's view"  # what a browser's own Gaussians are
 
 
 def browser_camera(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, height: int, moved_at: float) -> BrowserCamera:

@@ -1,6 +1,11 @@
-"""The viser server of a run: a drawing thread turns the latest `Snapshot` into scene nodes, the
-panel shows the run's numbers, and a keyframe selected in the browser (its frustum clicked, or
-the keyframe list) is answered with its image beside the render from its pose.
+"""The viser server of a run: a drawing thread turns the latest `Snapshot` into scene nodes, each
+browser's panel shows the run's numbers, and a keyframe selected in the browser (its frustum
+clicked, or the keyframe list) is answered with its image beside the render from its pose.
+
+The Gaussians: a snapshot's shared decoding is a scene node every browser sees; a browser with a
+decoding of its own (for its camera, `Snapshot.per_browser`) gets a node of the same name for it
+alone, which hides the shared one from that browser (viser's client-scoped nodes), and its panel
+says what it draws.
 
 The thread that owns the map hands snapshots over with `submit` (the newest replaces one not yet
 drawn) and answers selections with `serve_selection(provider)` when it has time: no call made by
@@ -22,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from segs.errors import ConfigError
-from segs.viewer.scene import BrowserCamera, Framing, KeyframeNode, Snapshot, browser_camera, framing
+from segs.viewer.scene import DRAWN_ROW, OWN, BrowserCamera, Framing, KeyframeNode, Snapshot, Splats, browser_camera, framing
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +89,13 @@ class ViewerServer:
         self._frustums: dict[int, object] = {}
         self.nodes: dict[str, object] = {}  # scene node name -> viser handle, of what is drawn now
         self._splats_id = None
+        # per browser (client id), guarded by _lock (the drawing thread, viser's connect / disconnect handlers):
+        self._lock = threading.Lock()
+        self.own_nodes: dict[int, object] = {}  # the Gaussians decoded for its camera (the node shadowing the shared one)
+        self._own_rows: dict[int, str] = {}  # what its own node draws, for its panel
+        self._panels: dict[int, object] = {}  # its panel (markdown)
+        self._rows: dict[str, str] = {}  # the latest snapshot's panel
+        self._shared_row: str | None = None  # what the shared node draws (None: no Gaussians drawn yet)
         self.framed: Framing | None = None  # where the browsers' camera was put (the first snapshot's framing)
         self._keyframe_labels: dict[str, int] = {}
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: the address is printed in one line instead
@@ -98,6 +110,8 @@ class ViewerServer:
         # no share button: it would publish the run through viser's public relay
         self.server.gui.configure_theme(show_share_button=False, control_width="large")
         self._build_gui(title)
+        self.server.on_client_connect(self._connected)
+        self.server.on_client_disconnect(self._disconnected)
         self._thread = threading.Thread(target=self._draw_loop, name="segs-viewer-draw", daemon=True)
         self._thread.start()
 
@@ -106,19 +120,18 @@ class ViewerServer:
         """Browsers connected now."""
         return len(self.server.get_clients())
 
-    def browser_camera(self) -> BrowserCamera | None:
-        """The camera of the connected browser that moved last, or None before one has reported
-        its camera."""
-        latest = None
-        for client in self.server.get_clients().values():
+    def browser_cameras(self) -> dict[int, BrowserCamera]:
+        """The cameras of the connected browsers that have reported one: client id -> camera."""
+        cameras = {}
+        for client_id, client in self.server.get_clients().items():
             cam = client.camera
             try:  # viser refuses to read a camera that the browser has not reported yet
                 state = (cam.wxyz, cam.position, cam.fov, cam.image_width, cam.image_height, cam.update_timestamp)
             except AssertionError:
                 continue
-            if state[-1] > 0 and (latest is None or state[-1] > latest[-1]):
-                latest = state
-        return None if latest is None else browser_camera(*latest)
+            if state[-1] > 0:
+                cameras[client_id] = browser_camera(*state)
+        return cameras
 
     def submit(self, snapshot: Snapshot) -> None:
         """Hand a snapshot to the drawing thread (replacing one it has not drawn yet)."""
@@ -163,12 +176,35 @@ class ViewerServer:
     # -- the browser's side ---------------------------------------------------------------------
     def _build_gui(self, title: str) -> None:
         gui = self.server.gui
-        self._panel = gui.add_markdown(f"**{title}**\n\nwaiting for the first snapshot")
+        self._title = title
         self._keyframe_list = gui.add_dropdown("keyframe", ("none",), initial_value="none",
                                                hint="show a keyframe's image beside the render from its pose")  # fmt: skip
         self._keyframe_list.on_update(lambda _: self._select(self._keyframe_labels.get(self._keyframe_list.value)))
         self._pair_note = gui.add_markdown("", visible=False)
         self._pair = gui.add_image(np.zeros((1, 2, 3), np.uint8), label="image | render", format="jpeg", visible=False)
+        self._panel_order = self._keyframe_list.order - 0.5  # each browser's panel, above the list
+
+    def _connected(self, client) -> None:
+        """A browser's panel (viser's handler of a new connection; a reload is a new client)."""
+        with self._lock:
+            content = self._markdown_for(client.client_id) if self._rows else f"**{self._title}**\n\nwaiting for the first snapshot"
+            self._panels[client.client_id] = client.gui.add_markdown(content, order=self._panel_order)
+
+    def _disconnected(self, client) -> None:
+        with self._lock:
+            for per_browser in (self.own_nodes, self._own_rows, self._panels):
+                per_browser.pop(client.client_id, None)
+
+    def _markdown_for(self, client_id: int) -> str:
+        """The panel of one browser: the snapshot's rows with what this browser draws after
+        "Gaussians", once there are Gaussians to draw (call with _lock held)."""
+        drawn = self._own_rows.get(client_id, self._shared_row)
+        rows = {}
+        for key, value in self._rows.items():
+            rows[key] = value
+            if key == "Gaussians" and drawn is not None:
+                rows[DRAWN_ROW] = drawn
+        return _markdown(rows)
 
     def _select(self, kf_id: int | None) -> None:
         if kf_id is not None:
@@ -199,11 +235,8 @@ class ViewerServer:
             self._frame_camera(frame)
         extent = frame.extent if frame is not None else 1.0
         if s.splats is not None and s.splats_id != self._splats_id:
-            g = s.splats
-            self.nodes["/map/gaussians"] = scene.add_gaussian_splats(
-                "/map/gaussians", centers=g.means, covariances=g.covariances(), rgbs=g.colors.clip(0, 1),
-                opacities=g.opacities.clip(0, 1)[:, None])  # fmt: skip
-            self._splats_id = s.splats_id
+            self.nodes["/map/gaussians"] = _add_splats(scene, s.splats)
+            self._splats_id, self._shared_row = s.splats_id, f"{len(s.splats)} ({s.splats_label})"
         if s.points is not None and len(s.points):
             colors = (np.clip(s.point_colors, 0, 1) * 255).astype(np.uint8)
             self.nodes["/map/points"] = scene.add_point_cloud("/map/points", s.points.astype(np.float32), colors,
@@ -211,7 +244,26 @@ class ViewerServer:
         if s.trajectories is not None:
             self._draw_trajectories(s, extent)
         self._draw_keyframes(s.keyframes, extent)
-        self._panel.content = _markdown(s.panel)
+        self._draw_per_browser(s)
+
+    def _draw_per_browser(self, s: Snapshot) -> None:
+        """Each browser's own decoding (s.per_browser) over the shared one, and every panel. A new
+        shared decoding takes the place of the own decodings the snapshot does not renew."""
+        clients = self.server.get_clients()
+        with self._lock:
+            if s.splats is not None:
+                for client_id in set(self.own_nodes) - set(s.per_browser):
+                    self.own_nodes.pop(client_id).remove()
+                    self._own_rows.pop(client_id, None)
+            for client_id, splats in s.per_browser.items():
+                client = clients.get(client_id)
+                if client is None or splats is None:  # gone, or nothing in its view: it keeps what it has
+                    continue
+                self.own_nodes[client_id] = _add_splats(client.scene, splats)
+                self._own_rows[client_id] = f"{len(splats)} ({OWN})"
+            self._rows = dict(s.panel)
+            for client_id, panel in self._panels.items():
+                panel.content = self._markdown_for(client_id)
 
     def _draw_trajectories(self, s: Snapshot, extent: float) -> None:
         for name, centres, color in (("/trajectory/estimated", s.trajectories.estimated_centres(), EST_COLOR),
@@ -264,6 +316,12 @@ class _HandshakeNoise(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return record.getMessage() != "opening handshake failed"
+
+
+def _add_splats(scene, g: Splats):
+    """The Gaussians as the node "/map/gaussians" of a scene (the server's, or one browser's)."""
+    return scene.add_gaussian_splats("/map/gaussians", centers=g.means, covariances=g.covariances(), rgbs=g.colors.clip(0, 1),
+                                     opacities=g.opacities.clip(0, 1)[:, None])  # fmt: skip
 
 
 def _markdown(panel: dict[str, str]) -> str:
