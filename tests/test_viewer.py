@@ -112,8 +112,8 @@ def test_the_server_serves_a_train_run(train_run):
         frustums = [k for k in server.nodes if k.startswith("/keyframes/")]
         assert len(frustums) >= 3
         kf_id = int(frustums[0].rsplit("_", 1)[1])
-        server.selections.put(kf_id)
-        assert server.serve_selection(provider)
+        server.selections.put((12345, kf_id))  # selected in a browser gone since: nothing to answer
+        assert not server.serve_selection(provider) and server.selections.empty()
         image, render, note = provider(kf_id)
         assert render is not None and render.shape == image.shape and f"keyframe {kf_id}" in note
         assert render.std() > 1  # a render of the map, not a blank image
@@ -300,7 +300,7 @@ def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, t
     cut = tmp_path / "cut"
     shutil.copytree(train_run, cut)
     (cut / "point_cloud.ply").unlink()  # shown from its checkpoint, decoded for each browser's camera
-    server, _, follow = _serve(cut)
+    server, provider, follow = _serve(cut)
     mapper = load_mapper(read_run(cut))
     views = [np.linalg.inv(v.w2c.numpy().astype(np.float64)) for v in mapper.training_views()]
     try:
@@ -320,6 +320,7 @@ def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, t
                 cam.position, cam.look_at = tuple(c2w[:3, 3]), tuple(c2w[:3, 3] + c2w[:3, 2])
             # each browser's camera reported back, settled, and decoded for
             assert _until(lambda: set(server.own_nodes) == set(ids) and server.wait_idle(5), every=follow), server.own_nodes
+            assert _until(lambda: not _until(follow, timeout=1.0), timeout=30) and server.wait_idle(5)  # no camera moved for 1 s
             cameras = server.browser_cameras()
             drawn = {i: len(splats_for(mapper, cameras[i])) for i in ids}
             assert drawn[ids[0]] != drawn[ids[1]]  # two views, two decodings
@@ -327,6 +328,13 @@ def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, t
                 own = f"{drawn[client_id]} ({OWN})"
                 assert _until(lambda: own in " ".join(page.inner_text("body").split()), timeout=30), page.inner_text("body")
                 assert len(server.own_nodes[client_id].buffer) == drawn[client_id]
+            # a keyframe selected in one browser is answered in that browser alone
+            kf = mapper.training_views()[1]
+            server.selections.put((ids[0], kf.kf_id))
+            assert server.serve_selection(provider)
+            note = f"keyframe {kf.kf_id} (frame {kf.frame_index}): image | render"
+            assert _until(lambda: note in pages[0].inner_text("body"), timeout=30), pages[0].inner_text("body")
+            assert note not in pages[1].inner_text("body")
             pages[0].close()  # a browser gone: its decoding is dropped, the other keeps its own
             assert _until(lambda: ids[0] not in server.own_nodes) and ids[1] in server.own_nodes
             browser.close()

@@ -1,6 +1,7 @@
 """The viser server of a run: a drawing thread turns the latest `Snapshot` into scene nodes, each
-browser's panel shows the run's numbers, and a keyframe selected in the browser (its frustum
-clicked, or the keyframe list) is answered with its image beside the render from its pose.
+browser's panel shows the run's numbers, and a keyframe selected in a browser (its frustum
+clicked, or the browser's keyframe list) is answered in that browser with its image beside the
+render from its pose.
 
 The Gaussians: a snapshot's shared decoding is a scene node every browser sees; a browser with a
 decoding of its own (for its camera, `Snapshot.per_browser`) gets a node of the same name for it
@@ -79,7 +80,7 @@ class ViewerServer:
         if not any(isinstance(f, _HandshakeNoise) for f in quiet.filters):
             quiet.addFilter(_HandshakeNoise())
         self._viser = viser
-        self.selections: queue.Queue[int] = queue.Queue()
+        self.selections: queue.Queue[tuple[int, int]] = queue.Queue()  # (client id, kf_id) in the order selected
         self.drawn = 0  # snapshots drawn so far (tests wait on it)
         self.draw_ms: list[float] = []  # CPU time of the drawing thread per snapshot
         self._pending: Snapshot | None = None
@@ -93,11 +94,12 @@ class ViewerServer:
         self._lock = threading.Lock()
         self.own_nodes: dict[int, object] = {}  # the Gaussians decoded for its camera (the node shadowing the shared one)
         self._own_rows: dict[int, str] = {}  # what its own node draws, for its panel
-        self._panels: dict[int, object] = {}  # its panel (markdown)
+        self._guis: dict[int, _BrowserGui] = {}  # its panel, keyframe list and selected keyframe
         self._rows: dict[str, str] = {}  # the latest snapshot's panel
         self._shared_row: str | None = None  # what the shared node draws (None: no Gaussians drawn yet)
         self.framed: Framing | None = None  # where the browsers' camera was put (the first snapshot's framing)
-        self._keyframe_labels: dict[str, int] = {}
+        self._keyframe_labels: dict[str, int] = {}  # the keyframe lists' options -> kf_id
+        self._title = title
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: the address is printed in one line instead
             self.server = viser.ViserServer(host=host, port=chosen, label=title, verbose=False)
         self.port = self.server.get_port()
@@ -109,7 +111,6 @@ class ViewerServer:
         self.url = f"http://{socket.gethostname() if host in ('0.0.0.0', '::') else host}:{self.port}"
         # no share button: it would publish the run through viser's public relay
         self.server.gui.configure_theme(show_share_button=False, control_width="large")
-        self._build_gui(title)
         self.server.on_client_connect(self._connected)
         self.server.on_client_disconnect(self._disconnected)
         self._thread = threading.Thread(target=self._draw_loop, name="segs-viewer-draw", daemon=True)
@@ -145,25 +146,29 @@ class ViewerServer:
             return self._cond.wait_for(lambda: self._pending is None and not self._drawing, timeout)
 
     def serve_selection(self, provider: Provider) -> bool:
-        """Answer the newest keyframe selected in a browser, if any, with provider(kf_id) shown
-        in the panel (image | render); returns whether one was answered."""
-        kf_id = None
+        """Answer the newest keyframe selected in each browser, if any, with provider(kf_id) shown
+        in that browser's panel (image | render); returns whether one was answered."""
+        newest: dict[int, int] = {}
         while True:
             try:
-                kf_id = self.selections.get_nowait()
+                client_id, kf_id = self.selections.get_nowait()
             except queue.Empty:
                 break
-        if kf_id is None:
-            return False
-        image, render, note = provider(kf_id)
-        pair = image if render is None else np.concatenate([image, render], axis=1)
-        self._pair.image = _fit_width(pair, 960)
-        self._pair_note.content = note
-        self._pair.visible = self._pair_note.visible = True
-        return True
+            newest[client_id] = kf_id
+        answered = False
+        for client_id, kf_id in newest.items():
+            with self._lock:
+                gui = self._guis.get(client_id)
+            if gui is None:  # gone
+                continue
+            image, render, note = provider(kf_id)
+            gui.show_pair(image if render is None else np.concatenate([image, render], axis=1), note)
+            answered = True
+        return answered
 
     def add_dropdown(self, label: str, options: tuple[str, ...], initial: str, hint: str):
-        """A dropdown in the panel (below the keyframe list); its `.value` is the browsers' choice."""
+        """A dropdown in the panel (below each browser's keyframe list); its `.value` is the
+        browsers' choice, one for all."""
         return self.server.gui.add_dropdown(label, options, initial_value=initial, hint=hint)
 
     def close(self) -> None:
@@ -174,25 +179,18 @@ class ViewerServer:
             self.server.stop()
 
     # -- the browser's side ---------------------------------------------------------------------
-    def _build_gui(self, title: str) -> None:
-        gui = self.server.gui
-        self._title = title
-        self._keyframe_list = gui.add_dropdown("keyframe", ("none",), initial_value="none",
-                                               hint="show a keyframe's image beside the render from its pose")  # fmt: skip
-        self._keyframe_list.on_update(lambda _: self._select(self._keyframe_labels.get(self._keyframe_list.value)))
-        self._pair_note = gui.add_markdown("", visible=False)
-        self._pair = gui.add_image(np.zeros((1, 2, 3), np.uint8), label="image | render", format="jpeg", visible=False)
-        self._panel_order = self._keyframe_list.order - 0.5  # each browser's panel, above the list
-
     def _connected(self, client) -> None:
-        """A browser's panel (viser's handler of a new connection; a reload is a new client)."""
+        """A browser's panel and keyframe list (viser's handler of a new connection; a reload is a
+        new client)."""
         with self._lock:
             content = self._markdown_for(client.client_id) if self._rows else f"**{self._title}**\n\nwaiting for the first snapshot"
-            self._panels[client.client_id] = client.gui.add_markdown(content, order=self._panel_order)
+            gui = _BrowserGui(client.gui, content, ("none", *self._keyframe_labels))
+            gui.keyframes.on_update(lambda _: self._select(client.client_id, self._keyframe_labels.get(gui.keyframes.value)))
+            self._guis[client.client_id] = gui
 
     def _disconnected(self, client) -> None:
         with self._lock:
-            for per_browser in (self.own_nodes, self._own_rows, self._panels):
+            for per_browser in (self.own_nodes, self._own_rows, self._guis):
                 per_browser.pop(client.client_id, None)
 
     def _markdown_for(self, client_id: int) -> str:
@@ -206,9 +204,9 @@ class ViewerServer:
                 rows[DRAWN_ROW] = drawn
         return _markdown(rows)
 
-    def _select(self, kf_id: int | None) -> None:
-        if kf_id is not None:
-            self.selections.put(int(kf_id))
+    def _select(self, client_id: int | None, kf_id: int | None) -> None:
+        if client_id is not None and kf_id is not None:
+            self.selections.put((int(client_id), int(kf_id)))
 
     # -- drawing --------------------------------------------------------------------------------
     def _draw_loop(self) -> None:
@@ -262,8 +260,8 @@ class ViewerServer:
                 self.own_nodes[client_id] = _add_splats(client.scene, splats)
                 self._own_rows[client_id] = f"{len(splats)} ({OWN})"
             self._rows = dict(s.panel)
-            for client_id, panel in self._panels.items():
-                panel.content = self._markdown_for(client_id)
+            for client_id, gui in self._guis.items():
+                gui.panel.content = self._markdown_for(client_id)
 
     def _draw_trajectories(self, s: Snapshot, extent: float) -> None:
         for name, centres, color in (("/trajectory/estimated", s.trajectories.estimated_centres(), EST_COLOR),
@@ -288,7 +286,7 @@ class ViewerServer:
                 f"/keyframes/kf_{kf.kf_id:05d}", fov=2 * math.atan(cam.height / (2 * cam.fy)), aspect=cam.width / cam.height,
                 scale=0.06 * extent, thickness=0.002 * extent, color=KF_COLOR, image=kf.thumbnail, format="jpeg",
                 wxyz=wxyz, position=pos)  # fmt: skip
-            handle.on_click(lambda _, k=kf.kf_id: self._select(k))
+            handle.on_click(lambda event, k=kf.kf_id: self._select(event.client_id, k))
             self._frustums[kf.kf_id] = self.nodes[handle.name] = handle
         for kf_id in set(self._frustums) - seen:  # keyframes culled by the frontend
             handle = self._frustums.pop(kf_id)
@@ -296,8 +294,10 @@ class ViewerServer:
             handle.remove()
         labels = {f"kf {kf.kf_id} (frame {kf.frame_index})": kf.kf_id for kf in sorted(keyframes, key=lambda k: k.kf_id)}
         if labels.keys() != self._keyframe_labels.keys():
-            self._keyframe_labels = labels
-            self._keyframe_list.options = ("none", *labels)
+            with self._lock:
+                self._keyframe_labels = labels
+                for gui in self._guis.values():
+                    gui.keyframes.options = ("none", *labels)
 
     def _frame_camera(self, frame: Framing) -> None:
         """Point the browsers' camera at the map (scene.framing), once."""
@@ -308,6 +308,27 @@ class ViewerServer:
         cam.position, cam.look_at, cam.up = tuple(frame.position), tuple(frame.look_at), up
         for client in self.server.get_clients().values():
             client.camera.position, client.camera.look_at, client.camera.up_direction = tuple(frame.position), tuple(frame.look_at), up
+
+
+class _BrowserGui:
+    """One browser's part of the page, above the shared controls: the panel (markdown table), the
+    keyframe list and the selected keyframe's note and image | render."""
+
+    ORDER = -4.0  # viser orders GUI elements by this number; the shared ones count up from 1
+
+    def __init__(self, gui, content: str, options: tuple[str, ...]):
+        self.panel = gui.add_markdown(content, order=self.ORDER)
+        self.keyframes = gui.add_dropdown("keyframe", options, initial_value="none", order=self.ORDER + 1,
+                                          hint="show a keyframe's image beside the render from its pose")  # fmt: skip
+        self.pair_note = gui.add_markdown("", visible=False, order=self.ORDER + 2)
+        self.pair = gui.add_image(np.zeros((1, 2, 3), np.uint8), label="image | render", format="jpeg", visible=False,
+                                  order=self.ORDER + 3)  # fmt: skip
+
+    def show_pair(self, pair: np.ndarray, note: str) -> None:
+        """pair [H,W,3] uint8 (image, or image | render) shown with its note."""
+        self.pair.image = _fit_width(pair, 960)
+        self.pair_note.content = note
+        self.pair.visible = self.pair_note.visible = True
 
 
 class _HandshakeNoise(logging.Filter):
