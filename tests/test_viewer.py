@@ -350,3 +350,21 @@ def test_only_gaussians_that_can_change_a_pixel_are_sent():
     shown = splats.visible()
     assert len(shown) == 3 and np.array_equal(shown.opacities, op[3:]) and np.array_equal(shown.means, splats.means[3:])
     assert splats.visible(0.0) is splats
+
+
+def test_a_snapshot_replacing_one_not_yet_drawn_keeps_the_decodings_it_does_not_renew():
+    from segs.viewer.scene import Snapshot, merged
+
+    def splats(n: int) -> Splats:
+        return Splats(np.zeros((n, 3), np.float32), np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32), np.full((n, 3), 0.1, np.float32),
+                      np.ones(n, np.float32), np.full((n, 3), 0.5, np.float32))  # fmt: skip
+
+    shared, a, b, a2 = splats(5), splats(1), splats(2), splats(3)
+    pending = Snapshot(splats=shared, splats_id=1, splats_label="every one", per_browser={1: a, 2: b}, panel={"step": "10"})
+    newer = Snapshot(splats_id=2, per_browser={1: a2}, panel={"step": "11"})  # browser 1 moved: decoded for it alone
+    drawn = merged(pending, newer)
+    assert drawn.splats is shared and drawn.splats_id == 1 and drawn.splats_label == "every one"  # the shared ones kept
+    assert drawn.per_browser == {1: a2, 2: b} and drawn.panel == {"step": "11"}  # browser 2's decoding kept, 1's renewed
+    fresh = Snapshot(splats=splats(4), splats_id=3, splats_label="point_cloud.ply")  # new shared Gaussians decide all
+    assert merged(drawn, fresh) is fresh and not fresh.per_browser
+    assert merged(None, newer) is newer

@@ -8,7 +8,7 @@ arrays that their owner replaces rather than edits, so drawing never races with 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -114,6 +114,16 @@ class Snapshot:
     trajectories: Trajectories | None = None
     keyframes: list[KeyframeNode] = field(default_factory=list)
     panel: dict[str, str] = field(default_factory=dict)
+
+
+def merged(pending: Snapshot | None, newer: Snapshot) -> Snapshot:
+    """The snapshot to draw when `newer` arrives before `pending` was drawn. Newer shared splats
+    decide everything (a browser newer does not decode for is shown them); without them, newer
+    keeps pending's shared splats and its decodings for the browsers newer does not decode for."""
+    if pending is None or newer.splats is not None:
+        return newer
+    return replace(newer, splats=pending.splats, splats_id=pending.splats_id, splats_label=pending.splats_label,
+                   per_browser={**pending.per_browser, **newer.per_browser})  # fmt: skip
 
 
 def rotations(quats: np.ndarray) -> np.ndarray:

@@ -9,8 +9,8 @@ alone, which hides the shared one from that browser (viser's client-scoped nodes
 says what it draws.
 
 The thread that owns the map hands snapshots over with `submit` (the newest replaces one not yet
-drawn) and answers selections with `serve_selection(provider)` when it has time: no call made by
-the browser ever touches the map.
+drawn, keeping the decodings of it that the newest does not renew) and answers selections with
+`serve_selection(provider)` when it has time: no call made by the browser ever touches the map.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 from segs.errors import ConfigError
-from segs.viewer.scene import DRAWN_ROW, OWN, BrowserCamera, Framing, KeyframeNode, Snapshot, Splats, browser_camera, framing
+from segs.viewer.scene import DRAWN_ROW, OWN, BrowserCamera, Framing, KeyframeNode, Snapshot, Splats, browser_camera, framing, merged
 
 log = logging.getLogger(__name__)
 
@@ -135,9 +135,10 @@ class ViewerServer:
         return cameras
 
     def submit(self, snapshot: Snapshot) -> None:
-        """Hand a snapshot to the drawing thread (replacing one it has not drawn yet)."""
+        """Hand a snapshot to the drawing thread (replacing one it has not drawn yet, whose
+        decodings that this one does not renew it keeps: scene.merged)."""
         with self._cond:
-            self._pending = snapshot
+            self._pending = merged(self._pending, snapshot)
             self._cond.notify()
 
     def wait_idle(self, timeout: float) -> bool:
