@@ -231,3 +231,18 @@ def test_training_takes_a_snapshot_for_a_moved_camera_before_its_period(cut_run)
     server.connected = 3  # a third, without a camera yet: the shared Gaussians again
     viewer.refresh(trainer, mapper)
     assert set(server.submitted[-1].per_browser) == {5, 6} and _same(server.submitted[-1].splats, first.splats)
+
+
+def test_browsers_at_the_same_camera_share_one_decoding(cut_run):
+    from segs.viewer.scene import splats_for_each
+
+    _, mapper, _, views = _test_views(cut_run)
+    (w2c, frame), (w2c2, _) = views[0], views[-1]
+    calls = []
+    gaussians = mapper.gaussians
+    mapper.gaussians = lambda *a, **k: calls.append(1) or gaussians(*a, **k)
+    cameras = {1: BrowserCamera(w2c, frame.camera, 1.0), 2: BrowserCamera(w2c.copy(), frame.camera, 2.0),  # two tabs, one view
+               3: BrowserCamera(w2c2, frame.camera, 1.0)}  # fmt: skip
+    out = splats_for_each(mapper, cameras)
+    assert len(calls) == 2 and out[1] is out[2] and _same(out[1], Splats.from_cloud(gaussians(w2c, frame.camera)).visible())
+    assert _same(out[3], Splats.from_cloud(gaussians(w2c2, frame.camera)).visible()) and not _same(out[3], out[1])

@@ -30,7 +30,7 @@ from omegaconf import OmegaConf
 from segs.config import CONF_DIR, make_sequence, user_errors_exit
 from segs.errors import UserInputError
 from segs.viewer.saved_run import SavedRun, read_gaussian_ply, read_run
-from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, thumbnail
+from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, splats_for_each, thumbnail
 
 log = logging.getLogger("segs.view")
 
@@ -80,7 +80,7 @@ def snapshot(run: SavedRun, mapper, sequence, note: str | None, cameras: dict[in
         splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
     elif shared and mapper is not None:
         splats = splats_for(mapper, None)
-    per_browser = {} if ply or mapper is None else {cid: splats_for(mapper, cam) for cid, cam in (cameras or {}).items()}
+    per_browser = {} if ply or mapper is None else splats_for_each(mapper, cameras or {})
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
     trajs = None
     if run.trajectory is not None:

@@ -27,7 +27,7 @@ from segs.modules.contract import GaussianMapper, to_uint8
 from segs.modules.metrics import psnr
 from segs.trajectory import estimated_c2w
 from segs.viewer.config import ViewerConfig
-from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, thumbnail
+from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, splats_for_each, thumbnail
 from segs.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ class LiveViewer(L.Callback):
         test_view, one held-out frame rendered for the panel's PSNR."""
         everyone = cameras is None
         cameras = self.server.browser_cameras() if everyone else cameras
-        per_browser = {cid: splats_for(module, cam) for cid, cam in cameras.items()}
+        per_browser = splats_for_each(module, cameras)
         self._decoded_at.update({cid: cam.moved_at for cid, cam in cameras.items()})
         splats = None
         if everyone and (not self._shared_sent or self.server.clients() > len(cameras)):

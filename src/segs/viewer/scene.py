@@ -168,6 +168,19 @@ def splats_for(mapper: GaussianMapper, camera: BrowserCamera | None) -> Splats |
     return Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
 
 
+def splats_for_each(mapper: GaussianMapper, cameras: dict[int, BrowserCamera]) -> dict[int, Splats | None]:
+    """splats_for each browser's camera (client id -> camera), decoded once for browsers whose
+    cameras are the same (pose and canvas: tabs that have not moved since they opened)."""
+    decoded: dict[tuple, Splats | None] = {}
+    out = {}
+    for client_id, cam in cameras.items():
+        key = (cam.w2c.tobytes(), cam.camera)
+        if key not in decoded:
+            decoded[key] = splats_for(mapper, cam)
+        out[client_id] = decoded[key]
+    return out
+
+
 EVERY_ONE = "every one, decoded for the first keyframe"  # what the shared Gaussians of a map are
 OWN = "decoded for this camera's view"  # what a browser's own Gaussians are
 
