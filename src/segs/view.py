@@ -30,7 +30,17 @@ from omegaconf import OmegaConf
 from segs.config import CONF_DIR, make_sequence, user_errors_exit
 from segs.errors import UserInputError
 from segs.viewer.saved_run import SavedRun, read_gaussian_ply, read_run
-from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, splats_for_each, thumbnail
+from segs.viewer.scene import (
+    EVERY_ONE,
+    BrowserCamera,
+    DecodedCameras,
+    KeyframeNode,
+    Snapshot,
+    Trajectories,
+    splats_for,
+    splats_for_each,
+    thumbnail,
+)
 
 log = logging.getLogger("segs.view")
 
@@ -164,7 +174,7 @@ class CameraFollower:
         self.server, self.args, self.choice = server, (run, mapper, sequence, note), choice
         self.fixed = PLY if shows_ply(run) or mapper is None else CAMERA
         self.shown = self.fixed  # what serve's first snapshot drew
-        self.decoded_at: dict[int, float] = {}  # client id -> when its camera had moved, at its latest decoding
+        self.decoded = DecodedCameras()
         self.snapshots = 1  # submitted so far (serve's first one included)
 
     def source(self) -> str:
@@ -178,10 +188,10 @@ class CameraFollower:
         switched = source != self.shown
         cameras = self.server.browser_cameras() if source == CAMERA else {}
         if not switched:
-            cameras = {cid: cam for cid, cam in cameras.items() if cam.settled_after(self.decoded_at.get(cid, 0.0))}
+            cameras = self.decoded.moved(cameras)
             if not cameras:
                 return False
-        self.decoded_at.update({cid: cam.moved_at for cid, cam in cameras.items()})
+        self.decoded.mark(cameras)
         self.shown, self.snapshots = source, self.snapshots + 1
         self.server.submit(snapshot(*self.args, cameras=cameras, splats_id=self.snapshots, ply=source == PLY, shared=switched))
         return True

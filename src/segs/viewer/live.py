@@ -27,7 +27,17 @@ from segs.modules.contract import GaussianMapper, to_uint8
 from segs.modules.metrics import psnr
 from segs.trajectory import estimated_c2w
 from segs.viewer.config import ViewerConfig
-from segs.viewer.scene import EVERY_ONE, BrowserCamera, KeyframeNode, Snapshot, Trajectories, splats_for, splats_for_each, thumbnail
+from segs.viewer.scene import (
+    EVERY_ONE,
+    BrowserCamera,
+    DecodedCameras,
+    KeyframeNode,
+    Snapshot,
+    Trajectories,
+    splats_for,
+    splats_for_each,
+    thumbnail,
+)
 from segs.viewer.server import ViewerServer
 
 log = logging.getLogger(__name__)
@@ -80,7 +90,7 @@ class LiveViewer(L.Callback):
         self._turn = 0
         self._splats_id = 0
         self._thumbs: dict[int, np.ndarray] = {}
-        self._decoded_at: dict[int, float] = {}  # client id -> when its camera had moved, at its latest decoding
+        self._decoded = DecodedCameras()
         self._shared_sent = False  # whether the shared Gaussians (for browsers without a camera) were decoded once
 
     def on_train_start(self, trainer, pl_module) -> None:
@@ -96,11 +106,6 @@ class LiveViewer(L.Callback):
         """The shortest gap that keeps snapshots within max_share of the training thread."""
         return (self.snapshot_ms[-1] / 1000.0 if self.snapshot_ms else 0.0) / self.cfg.max_share
 
-    def moved_cameras(self, cameras: dict[int, BrowserCamera]) -> dict[int, BrowserCamera]:
-        """The browsers' cameras (client id -> camera) that moved since their latest decoding and
-        have been still since for SETTLE_S."""
-        return {cid: cam for cid, cam in cameras.items() if cam.settled_after(self._decoded_at.get(cid, 0.0))}
-
     def on_train_batch_end(self, trainer, pl_module: GaussianMapper, outputs, batch, batch_idx) -> None:
         self.server.serve_selection(lambda kf_id: self._selection(pl_module, kf_id))
         now = time.perf_counter()
@@ -108,7 +113,7 @@ class LiveViewer(L.Callback):
             return
         since = now - self._last
         due = since >= self.period()
-        moved = {} if due or since < self.min_period() else self.moved_cameras(self.server.browser_cameras())
+        moved = {} if due or since < self.min_period() else self._decoded.moved(self.server.browser_cameras())
         if not due and not moved:
             return
         self._last = now
@@ -139,7 +144,7 @@ class LiveViewer(L.Callback):
         everyone = cameras is None
         cameras = self.server.browser_cameras() if everyone else cameras
         per_browser = splats_for_each(module, cameras)
-        self._decoded_at.update({cid: cam.moved_at for cid, cam in cameras.items()})
+        self._decoded.mark(cameras)
         splats = None
         if everyone and (not self._shared_sent or self.server.clients() > len(cameras)):
             splats = splats_for(module, None)

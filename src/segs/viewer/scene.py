@@ -168,6 +168,23 @@ def splats_for(mapper: GaussianMapper, camera: BrowserCamera | None) -> Splats |
     return Splats.from_cloud(cloud).visible() if cloud is not None and len(cloud) else None
 
 
+class DecodedCameras:
+    """When each browser's camera had last moved at its latest decoding (client id -> time), to
+    tell which cameras moved since."""
+
+    def __init__(self):
+        self.moved_at: dict[int, float] = {}
+
+    def moved(self, cameras: dict[int, BrowserCamera]) -> dict[int, BrowserCamera]:
+        """The cameras (client id -> camera) that moved since their latest decoding (or were never
+        decoded for) and have been still since for SETTLE_S."""
+        return {cid: cam for cid, cam in cameras.items() if cam.settled_after(self.moved_at.get(cid, 0.0))}
+
+    def mark(self, cameras: dict[int, BrowserCamera]) -> None:
+        """Record that `cameras` were decoded for now."""
+        self.moved_at.update({cid: cam.moved_at for cid, cam in cameras.items()})
+
+
 def splats_for_each(mapper: GaussianMapper, cameras: dict[int, BrowserCamera]) -> dict[int, Splats | None]:
     """splats_for each browser's camera (client id -> camera), decoded once for browsers whose
     cameras are the same (pose and canvas: tabs that have not moved since they opened)."""
