@@ -106,7 +106,7 @@ def test_the_server_serves_a_train_run(train_run):
         # the exported Gaussians (fitted to the views: none is below what can show), the map decoded
         # for the browser's camera one choice away
         assert len(splats.buffer) == n_visible == len(logits) > 0
-        assert follow.choice is not None and follow.choice.value == follow.source() == "point_cloud.ply (as a 3D-GS viewer shows it)"
+        assert follow.choices and follow.fixed == "point_cloud.ply (as a 3D-GS viewer shows it)"
         assert len(server.nodes["/map/points"].points) == len(PlyData.read(str(train_run / "map_points.ply"))["vertex"]) > 0
         assert {"/trajectory/estimated", "/trajectory/ground_truth"} <= set(server.nodes)
         frustums = [k for k in server.nodes if k.startswith("/keyframes/")]
@@ -128,7 +128,7 @@ def test_the_server_serves_a_track_run_with_its_map_points(track_run):
     assert len(points) > 0 and {"x", "y", "z", "red", "green", "blue", "kf_id"} <= set(points.data.dtype.names)
     server, provider, follow = _serve(track_run)
     try:
-        assert "/map/gaussians" not in server.nodes and follow.choice is None  # tracking only: no Gaussians
+        assert "/map/gaussians" not in server.nodes and not follow.choices  # tracking only: no Gaussians
         assert len(server.nodes["/map/points"].points) == len(points)
         assert "/trajectory/estimated" in server.nodes
         assert len([k for k in server.nodes if k.startswith("/keyframes/")]) == len(run.keyframes)
@@ -149,7 +149,7 @@ def test_an_interrupted_train_run_is_shown_from_its_last_checkpoint(train_run, t
     assert run.status == "interrupted" and run.checkpoint.name == "last.ckpt" and run.trajectory is not None
     server, _, follow = _serve(cut)
     try:
-        assert "/map/gaussians" in server.nodes and "/trajectory/estimated" in server.nodes and follow.choice is None
+        assert "/map/gaussians" in server.nodes and "/trajectory/estimated" in server.nodes and not follow.choices
         from_checkpoint = len(server.nodes["/map/gaussians"].buffer)
     finally:
         server.close()
@@ -342,6 +342,47 @@ def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, t
         server.close()
 
 
+@pytest.mark.slow
+def test_each_browser_chooses_between_the_ply_and_the_map_decoded_for_its_camera(train_run):
+    sync = _browser_or_skip()
+    from segs.view import CAMERA, PLY, load_mapper
+    from segs.viewer.scene import OWN, splats_for
+
+    server, provider, follow = _serve(train_run)  # a finished run: its PLY, and its checkpoint
+    mapper = load_mapper(read_run(train_run))
+    c2w = np.linalg.inv(mapper.training_views()[0].w2c.numpy().astype(np.float64))
+    text = lambda page: " ".join(page.inner_text("body").split())  # noqa: E731
+    try:
+        with sync.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=BROWSER_ARGS)
+            pages, ids = [], []
+            for _ in range(2):
+                pages.append(browser.new_page(viewport={"width": 900, "height": 640}))
+                pages[-1].goto(server.url)
+                pages[-1].wait_for_selector("canvas", timeout=60_000)
+                assert _until(lambda: len(server.server.get_clients()) == len(pages))
+                ids.append(max(set(server.server.get_clients()) - set(ids)))
+            cam = server.server.get_clients()[ids[0]].camera
+            cam.up_direction = tuple(-c2w[:3, 1])
+            cam.position, cam.look_at = tuple(c2w[:3, 3]), tuple(c2w[:3, 3] + c2w[:3, 2])
+            assert _until(lambda: server.browser_choices() == {ids[0]: PLY, ids[1]: PLY})
+            ply = f"{len(server.nodes['/map/gaussians'].buffer)} (point_cloud.ply)"
+            pages[0].get_by_role("combobox", name="Gaussians").click()  # the first browser alone chooses the map
+            pages[0].get_by_role("option", name=CAMERA).click()
+            assert _until(lambda: set(server.own_nodes) == {ids[0]} and server.wait_idle(5), every=follow), server.own_nodes
+            assert _until(lambda: not _until(follow, timeout=1.0), timeout=30) and server.wait_idle(5)  # its camera settled
+            own = f"{len(splats_for(mapper, server.browser_cameras()[ids[0]]))} ({OWN})"
+            assert _until(lambda: own in text(pages[0]), timeout=30), text(pages[0])
+            assert ply in text(pages[1]) and OWN not in text(pages[1])  # the other one still draws the PLY
+            pages[0].get_by_role("combobox", name="Gaussians").click()  # and back: the PLY again
+            pages[0].get_by_role("option", name=PLY).click()
+            assert _until(lambda: not server.own_nodes and server.wait_idle(5), every=follow), server.own_nodes
+            assert _until(lambda: ply in text(pages[0]), timeout=30) and OWN not in text(pages[0]), text(pages[0])
+            browser.close()
+    finally:
+        server.close()
+
+
 def test_only_gaussians_that_can_change_a_pixel_are_sent():
     n = 6
     op = np.array([0.0, 1e-3, MIN_OPACITY * 0.99, MIN_OPACITY, 0.5, 1.0], np.float32)
@@ -350,6 +391,20 @@ def test_only_gaussians_that_can_change_a_pixel_are_sent():
     shown = splats.visible()
     assert len(shown) == 3 and np.array_equal(shown.opacities, op[3:]) and np.array_equal(shown.means, splats.means[3:])
     assert splats.visible(0.0) is splats
+
+
+def test_browsers_drawing_one_splats_share_its_covariances():
+    from segs.viewer.scene import covariances
+
+    rng = np.random.default_rng(0)
+    q, sc = rng.normal(size=(50, 4)).astype(np.float32), rng.uniform(0.01, 0.1, (50, 3)).astype(np.float32)
+    opacities, colors = np.linspace(0.1, 1, 50, dtype=np.float32), np.full((50, 3), 0.5, np.float32)
+    g = Splats(rng.normal(size=(50, 3)).astype(np.float32), q, sc, opacities, colors)
+    first = g.covariances()
+    assert g.covariances() is first  # computed once for every browser drawing it (splats_for_each)
+    np.testing.assert_array_equal(first, covariances(q, sc))
+    half = g.visible(0.5)  # another Splats: its own
+    np.testing.assert_array_equal(half.covariances(), first[g.opacities >= 0.5])
 
 
 def test_a_snapshot_replacing_one_not_yet_drawn_keeps_the_decodings_it_does_not_renew():
@@ -368,3 +423,10 @@ def test_a_snapshot_replacing_one_not_yet_drawn_keeps_the_decodings_it_does_not_
     fresh = Snapshot(splats=splats(4), splats_id=3, splats_label="point_cloud.ply")  # new shared Gaussians decide all
     assert merged(drawn, fresh) is fresh and not fresh.per_browser
     assert merged(None, newer) is newer
+    # browser 2 shown the shared Gaussians again (segs.view: it chose the PLY), then browser 1 too
+    back = merged(drawn, Snapshot(splats_id=4, dropped=frozenset({2})))
+    assert back.per_browser == {1: a2} and back.dropped == {2} and back.splats is shared
+    assert merged(back, Snapshot(splats_id=5, dropped=frozenset({1}))).dropped == {1, 2}
+    again = merged(back, Snapshot(splats_id=5, per_browser={2: b}))  # 2 chose its own again before the drop was drawn
+    assert again.per_browser == {1: a2, 2: b} and not again.dropped
+    assert merged(again, Snapshot(splats_id=6, dropped=frozenset({1}))).per_browser == {2: b}

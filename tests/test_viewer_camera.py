@@ -97,7 +97,7 @@ def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_each_moved_camera(
     run, mapper, sequence, views = _test_views(cut_run)
     server = _Browser()
     follow = CameraFollower(server, run, mapper, sequence, None)
-    assert follow.source() == CAMERA and not follow()  # no browser camera yet
+    assert follow.fixed == CAMERA and follow.sources() == {} and not follow()  # no browser camera yet
     w2c, frame = views[0]
     server.cameras[7] = BrowserCamera(w2c, frame.camera, moved_at=time.time())
     assert not follow()  # still moving: not decoded at every frame of a drag
@@ -118,34 +118,40 @@ def test_a_run_shown_from_its_checkpoint_is_decoded_again_for_each_moved_camera(
     assert follow() and set(server.submitted[-1].per_browser) == {7}
 
 
-def test_a_run_shown_from_its_ply_follows_the_camera_once_chosen(cut_run, tmp_path):
+def test_a_run_shown_from_its_ply_follows_the_camera_of_each_browser_that_chooses_it(cut_run, tmp_path):
     from segs.view import CAMERA, PLY, CameraFollower, load_mapper
-    from segs.viewer.saved_run import read_gaussian_ply, read_run
+    from segs.viewer.saved_run import read_run
 
     done = tmp_path / "done"
     shutil.copytree(cut_run, done)
     mapper = load_mapper(read_run(done))
     mapper.export_ply(done / "point_cloud.ply")  # newer than the checkpoint: the PLY is what is shown
     server = _Browser()
-    w2c, frame = _test_views(cut_run)[3][0]  # a held-out frame's pose: the map in view
-    camera = frame.camera
-    server.cameras[3] = BrowserCamera(w2c, camera, moved_at=time.time() - SETTLE_S)
-    follow = CameraFollower(server, read_run(done), mapper, None, None)  # no choice offered: the PLY
-    assert follow.source() == PLY and not follow() and not server.submitted
-    choice = SimpleNamespace(value=PLY)  # the browser's dropdown
-    follow = CameraFollower(server, read_run(done), mapper, None, None, choice)
+    views = _test_views(cut_run)[3]
+    (w2c, frame), (w2c2, _) = views[0], views[-1]  # held-out frames' poses: the map in view
+    server.cameras = {3: BrowserCamera(w2c, frame.camera, moved_at=time.time() - SETTLE_S),
+                      4: BrowserCamera(w2c2, frame.camera, moved_at=time.time() - SETTLE_S)}  # fmt: skip
+    follow = CameraFollower(server, read_run(done), mapper, None, None)  # no choice offered: the PLY for all
+    assert not follow.choices and set(follow.sources().values()) == {PLY} and not follow() and not server.submitted
+    server.choices = {3: PLY, 4: PLY}  # each browser's dropdown
+    server.browser_choices = lambda: dict(server.choices)
+    follow = CameraFollower(server, read_run(done), mapper, None, None, choices=True)
     assert not follow() and not server.submitted
-    choice.value = CAMERA
+    server.choices[3] = CAMERA  # browser 3 alone: its camera decoded for at once, browser 4 keeps the PLY
     assert follow() and not follow()
-    switched = server.submitted[-1]  # the shared Gaussians (for browsers without a camera) and this browser's own
-    assert _same(switched.per_browser[3], Splats.from_cloud(mapper.gaussians(w2c, camera)).visible())
-    assert _same(switched.splats, Splats.from_cloud(mapper.gaussians()).visible()) and switched.splats_label == EVERY_ONE
-    choice.value = PLY
+    switched = server.submitted[-1]
+    assert switched.splats is None and set(switched.per_browser) == {3} and not switched.dropped
+    assert _same(switched.per_browser[3], Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible())
+    server.cameras[3] = BrowserCamera(w2c2, frame.camera, moved_at=time.time() - SETTLE_S)  # 3 moves: decoded again
+    server.cameras[4] = BrowserCamera(w2c, frame.camera, moved_at=time.time() - SETTLE_S)  # 4 moves: its PLY needs nothing
+    assert follow() and set(server.submitted[-1].per_browser) == {3} and not follow()
+    server.choices = {3: PLY, 4: CAMERA}  # both switch: 3 is shown the PLY again, 4 its own decoding
     assert follow() and not follow()
-    exported = read_gaussian_ply(done / "point_cloud.ply").visible()
-    back = server.submitted[-1]  # new shared Gaussians and no browser's own: every browser is shown the PLY
-    assert _same(back.splats, exported) and not back.per_browser and len(server.submitted) == 2
-    assert back.splats_label == "point_cloud.ply"
+    back = server.submitted[-1]
+    assert back.splats is None and back.dropped == {3} and set(back.per_browser) == {4}
+    assert _same(back.per_browser[4], Splats.from_cloud(mapper.gaussians(w2c, frame.camera)).visible())
+    del server.choices[4], server.cameras[4]  # 4 gone (the server drops its node): nothing to submit for it
+    assert not follow() and follow.own == set() and len(server.submitted) == 3
 
 
 class _Connected(_Browser):

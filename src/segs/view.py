@@ -4,7 +4,7 @@ Any run folder of segs.train or segs.track, finished or interrupted: the Gaussia
 (point_cloud.ply, as the run exported them; without it or when a checkpoint is newer, an
 interrupted run, decoded by the mapper rebuilt from checkpoints/final.ckpt, else last.ckpt, for
 each browser's camera: what a render from there draws, decoded again when that camera has moved
-and settled; a run with both: the PLY, or the checkpoint's decoding chosen in the panel), the
+and settled; a run with both: the PLY, or the checkpoint's decoding, chosen in each browser's panel), the
 SLAM map points (map_points.ply), the estimated trajectory
 (trajectory.txt or trajectory_partial.txt) beside the ground truth when the run's data can still be read, the keyframes (selecting one shows
 its image and the render from its pose) and the run's numbers. Serves until Ctrl-C. Defaults of
@@ -80,17 +80,18 @@ def shows_ply(run: SavedRun) -> bool:
 
 
 def snapshot(run: SavedRun, mapper, sequence, note: str | None, cameras: dict[int, BrowserCamera] | None = None, splats_id: int = 1,
-             ply: bool | None = None, shared: bool = True) -> Snapshot:
-    """Everything the run folder shows, as one snapshot, numbered splats_id. The Gaussians every
-    browser sees (with shared; without: unchanged): those of its point_cloud.ply (ply; None: when
-    shows_ply), else the checkpoint's, every one decoded for the first keyframe; without the PLY,
-    the checkpoint's decoded for each of `cameras` (client id -> camera) too."""
-    splats, ply = None, shows_ply(run) if ply is None else ply
+             shared: bool = True, dropped: frozenset[int] = frozenset()) -> Snapshot:
+    """Everything the run folder shows, as one snapshot, numbered splats_id. With shared, the
+    Gaussians every browser without its own sees: those of its point_cloud.ply when shows_ply,
+    else the checkpoint's, every one decoded for the first keyframe; the checkpoint's decoded
+    for each of `cameras` (client id -> camera), each browser's own; `dropped`: browsers shown the
+    shared Gaussians again."""
+    splats, ply = None, shows_ply(run)
     if shared and ply:
         splats = read_gaussian_ply(run.ply).visible()  # what the run exported (SEGS: fitted, eval.ply_fit_steps)
     elif shared and mapper is not None:
         splats = splats_for(mapper, None)
-    per_browser = {} if ply or mapper is None else splats_for_each(mapper, cameras or {})
+    per_browser = splats_for_each(mapper, cameras) if mapper is not None and cameras else {}
     align = OmegaConf.select(run.config, "sensor.ate_align", default="se3") or "se3"
     trajs = None
     if run.trajectory is not None:
@@ -98,8 +99,8 @@ def snapshot(run: SavedRun, mapper, sequence, note: str | None, cameras: dict[in
         trajs = Trajectories(run.trajectory[0], run.trajectory[1], gt[0], gt[1], align)
     points = run.points or (None, None)
     return Snapshot(splats=splats, splats_id=splats_id, splats_label="point_cloud.ply" if ply else EVERY_ONE, per_browser=per_browser,
-                    points=points[0], point_colors=points[1], trajectories=trajs, keyframes=keyframes(run, mapper, sequence),
-                    panel=panel(run, mapper, note))  # fmt: skip
+                    dropped=frozenset(dropped), points=points[0], point_colors=points[1], trajectories=trajs,
+                    keyframes=keyframes(run, mapper, sequence), panel=panel(run, mapper, note))  # fmt: skip
 
 
 def keyframes(run: SavedRun, mapper, sequence) -> list[KeyframeNode]:
@@ -165,35 +166,45 @@ PLY, CAMERA = "point_cloud.ply (as a 3D-GS viewer shows it)", "decoded for this 
 
 
 class CameraFollower:
-    """What segs.view draws of the map, kept up to date: the checkpoint's Gaussians decoded again
-    for each browser's camera once it has moved and settled, or the run's point_cloud.ply (the
-    same from everywhere). choice: the browser's dropdown between the two (PLY / CAMERA) when the
-    run has both, else None (a run with a current PLY shows it; one without, its checkpoint)."""
+    """What segs.view draws of the map for each browser, kept up to date: the checkpoint's
+    Gaussians decoded again for its camera once it has moved and settled, or the run's
+    point_cloud.ply (the same from everywhere, the shared Gaussians). choices: whether each browser
+    chooses between the two (its PLY / CAMERA dropdown, server.browser_choices) when the run has
+    both; without, a run with a current PLY shows it, one without, its checkpoint decoded for
+    every browser's camera."""
 
-    def __init__(self, server, run: SavedRun, mapper, sequence, note: str | None, choice=None):
-        self.server, self.args, self.choice = server, (run, mapper, sequence, note), choice
+    def __init__(self, server, run: SavedRun, mapper, sequence, note: str | None, choices: bool = False):
+        self.server, self.args, self.choices = server, (run, mapper, sequence, note), choices
         self.fixed = PLY if shows_ply(run) or mapper is None else CAMERA
-        self.shown = self.fixed  # what serve's first snapshot drew
+        self.own: set[int] = set()  # browsers drawing the checkpoint decoded for their camera now
+        self.seen: dict[int, str] = {}  # each browser's source at the latest call
         self.decoded = DecodedCameras()
         self.snapshots = 1  # submitted so far (serve's first one included)
 
-    def source(self) -> str:
-        return self.choice.value if self.choice is not None else self.fixed
+    def sources(self) -> dict[int, str]:
+        """What each connected browser (client id) draws: PLY or CAMERA."""
+        if self.choices:
+            return self.server.browser_choices()
+        return dict.fromkeys(self.server.browser_cameras(), self.fixed)
 
     def __call__(self) -> bool:
-        """Submit a new snapshot when the source was switched (the shared Gaussians, and with the
-        checkpoint's decoding one for each browser's camera), or, decoding for the cameras, when
-        browsers' cameras moved and settled (theirs alone); returns whether one was."""
-        source = self.source()
-        switched = source != self.shown
-        cameras = self.server.browser_cameras() if source == CAMERA else {}
-        if not switched:
-            cameras = self.decoded.moved(cameras)
-            if not cameras:
-                return False
-        self.decoded.mark(cameras)
-        self.shown, self.snapshots = source, self.snapshots + 1
-        self.server.submit(snapshot(*self.args, cameras=cameras, splats_id=self.snapshots, ply=source == PLY, shared=switched))
+        """Submit a new snapshot when browsers switched (a decoding for the cameras of those that
+        chose CAMERA, the shared Gaussians again for those that chose PLY) or, decoding for them,
+        when cameras of browsers at CAMERA moved and settled (theirs alone); returns whether one was."""
+        if self.fixed == PLY and not self.choices:
+            return False
+        sources = self.sources()
+        switched = {cid for cid, src in sources.items() if src == CAMERA != self.seen.get(cid, CAMERA)}
+        self.seen, self.own = sources, self.own & sources.keys()  # gone: the server drops theirs
+        dropped = {cid for cid in self.own if sources[cid] != CAMERA}
+        cameras = {cid: cam for cid, cam in self.server.browser_cameras().items() if sources.get(cid) == CAMERA}
+        todo = {**self.decoded.moved(cameras), **{cid: cam for cid, cam in cameras.items() if cid in switched}}
+        if not todo and not dropped:
+            return False
+        self.decoded.mark(todo)
+        self.own = (self.own - dropped) | todo.keys()
+        self.snapshots += 1
+        self.server.submit(snapshot(*self.args, cameras=todo, splats_id=self.snapshots, shared=False, dropped=frozenset(dropped)))
         return True
 
 
@@ -211,13 +222,13 @@ def serve(run_dir: str | Path, host: str, port: int | None, first_port: int):
         mapper = load_mapper(run)
         sequence, note = load_sequence(run)
         server.submit(snapshot(run, mapper, sequence, note))
-        choice = None
-        if mapper is not None and shows_ply(run):
-            choice = server.add_dropdown("Gaussians", (PLY, CAMERA), PLY, "the exported PLY, or the map decoded for this camera")
+        choices = mapper is not None and shows_ply(run)
+        if choices:
+            server.add_choice("Gaussians", (PLY, CAMERA), PLY, "the exported PLY, or the map decoded for this camera")
     except BaseException:
         server.close()
         raise
-    return server, provider(run, mapper, sequence), CameraFollower(server, run, mapper, sequence, note, choice)
+    return server, provider(run, mapper, sequence), CameraFollower(server, run, mapper, sequence, note, choices)
 
 
 def main(argv: list[str] | None = None) -> None:

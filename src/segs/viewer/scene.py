@@ -27,6 +27,7 @@ class Splats:
     scales: np.ndarray
     opacities: np.ndarray
     colors: np.ndarray
+    _covariances: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_cloud(cls, cloud: GaussianCloud) -> "Splats":
@@ -45,8 +46,10 @@ class Splats:
         return Splats(*(a[keep] for a in (self.means, self.quats, self.scales, self.opacities, self.colors)))
 
     def covariances(self) -> np.ndarray:
-        """[N,3,3] R diag(scale^2) R^T."""
-        return covariances(self.quats, self.scales)
+        """[N,3,3] R diag(scale^2) R^T, computed once: browsers at the same camera draw one Splats."""
+        if self._covariances is None:
+            self._covariances = covariances(self.quats, self.scales)
+        return self._covariances
 
 
 @dataclass
@@ -99,8 +102,10 @@ class Snapshot:
     splats: the Gaussians every browser is shown unless it has its own, or None (a tracking-only
     run, nothing mapped yet, or the shared ones unchanged); splats_id changes when they do (the
     server sends them again only then); splats_label: what they were decoded for (the panel's
-    words). per_browser: client id -> the Gaussians decoded for that browser's camera, drawn for
+    words).
+    per_browser: client id -> the Gaussians decoded for that browser's camera, drawn for
     it alone; a browser not in it keeps its own unless the snapshot brings new shared splats.
+    dropped: browsers whose own Gaussians are removed (they are shown the shared ones again).
     points [M,3] / point_colors [M,3] in [0,1]: the SLAM map points. panel: label -> value, in
     order (markdown table of the page; the server adds DRAWN_ROW after "Gaussians").
     """
@@ -109,6 +114,7 @@ class Snapshot:
     splats_id: int = 0
     splats_label: str = ""
     per_browser: dict[int, Splats | None] = field(default_factory=dict)
+    dropped: frozenset[int] = frozenset()
     points: np.ndarray | None = None
     point_colors: np.ndarray | None = None
     trajectories: Trajectories | None = None
@@ -119,11 +125,14 @@ class Snapshot:
 def merged(pending: Snapshot | None, newer: Snapshot) -> Snapshot:
     """The snapshot to draw when `newer` arrives before `pending` was drawn. Newer shared splats
     decide everything (a browser newer does not decode for is shown them); without them, newer
-    keeps pending's shared splats and its decodings for the browsers newer does not decode for."""
+    keeps pending's shared splats, its decodings for the browsers newer neither decodes for nor
+    drops, and its drops of the browsers newer does not decode for."""
     if pending is None or newer.splats is not None:
         return newer
+    kept = {cid: g for cid, g in pending.per_browser.items() if cid not in newer.dropped}
+    dropped = (pending.dropped - newer.per_browser.keys()) | newer.dropped
     return replace(newer, splats=pending.splats, splats_id=pending.splats_id, splats_label=pending.splats_label,
-                   per_browser={**pending.per_browser, **newer.per_browser})  # fmt: skip
+                   per_browser={**kept, **newer.per_browser}, dropped=dropped)  # fmt: skip
 
 
 def rotations(quats: np.ndarray) -> np.ndarray:

@@ -99,6 +99,7 @@ class ViewerServer:
         self._shared_row: str | None = None  # what the shared node draws (None: no Gaussians drawn yet)
         self.framed: Framing | None = None  # where the browsers' camera was put (the first snapshot's framing)
         self._keyframe_labels: dict[str, int] = {}  # the keyframe lists' options -> kf_id
+        self._choice: tuple | None = None  # add_choice's dropdown, made in every browser's part
         self._title = title
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: the address is printed in one line instead
             self.server = viser.ViserServer(host=host, port=chosen, label=title, verbose=False)
@@ -167,10 +168,18 @@ class ViewerServer:
             answered = True
         return answered
 
-    def add_dropdown(self, label: str, options: tuple[str, ...], initial: str, hint: str):
-        """A dropdown in the panel (below each browser's keyframe list); its `.value` is the
-        browsers' choice, one for all."""
-        return self.server.gui.add_dropdown(label, options, initial_value=initial, hint=hint)
+    def add_choice(self, label: str, options: tuple[str, ...], initial: str, hint: str) -> None:
+        """A dropdown in each browser's part of the page (above its keyframe list), its own choice
+        (browser_choices), for the browsers connected now and those that connect later."""
+        with self._lock:
+            self._choice = (label, options, initial, hint)
+            for gui in self._guis.values():
+                gui.add_choice(*self._choice)
+
+    def browser_choices(self) -> dict[int, str]:
+        """Each connected browser's value of the add_choice dropdown: client id -> option."""
+        with self._lock:
+            return {client_id: gui.choice.value for client_id, gui in self._guis.items() if gui.choice is not None}
 
     def close(self) -> None:
         with self._cond:
@@ -187,6 +196,8 @@ class ViewerServer:
             content = self._markdown_for(client.client_id) if self._rows else f"**{self._title}**\n\nwaiting for the first snapshot"
             gui = _BrowserGui(client.gui, content, ("none", *self._keyframe_labels))
             gui.keyframes.on_update(lambda _: self._select(client.client_id, self._keyframe_labels.get(gui.keyframes.value)))
+            if self._choice is not None:
+                gui.add_choice(*self._choice)
             self._guis[client.client_id] = gui
 
     def _disconnected(self, client) -> None:
@@ -250,10 +261,10 @@ class ViewerServer:
         shared decoding takes the place of the own decodings the snapshot does not renew."""
         clients = self.server.get_clients()
         with self._lock:
-            if s.splats is not None:
-                for client_id in set(self.own_nodes) - set(s.per_browser):
-                    self.own_nodes.pop(client_id).remove()
-                    self._own_rows.pop(client_id, None)
+            gone = set(self.own_nodes) - set(s.per_browser) if s.splats is not None else s.dropped & set(self.own_nodes)
+            for client_id in gone:
+                self.own_nodes.pop(client_id).remove()
+                self._own_rows.pop(client_id, None)
             for client_id, splats in s.per_browser.items():
                 client = clients.get(client_id)
                 if client is None or splats is None:  # gone, or nothing in its view: it keeps what it has
@@ -312,18 +323,23 @@ class ViewerServer:
 
 
 class _BrowserGui:
-    """One browser's part of the page, above the shared controls: the panel (markdown table), the
-    keyframe list and the selected keyframe's note and image | render."""
+    """One browser's part of the page, above the shared controls: the panel (markdown table), a
+    choice (ViewerServer.add_choice), the keyframe list and the selected keyframe's note and
+    image | render."""
 
     ORDER = -4.0  # viser orders GUI elements by this number; the shared ones count up from 1
 
     def __init__(self, gui, content: str, options: tuple[str, ...]):
+        self._gui, self.choice = gui, None
         self.panel = gui.add_markdown(content, order=self.ORDER)
         self.keyframes = gui.add_dropdown("keyframe", options, initial_value="none", order=self.ORDER + 1,
                                           hint="show a keyframe's image beside the render from its pose")  # fmt: skip
         self.pair_note = gui.add_markdown("", visible=False, order=self.ORDER + 2)
         self.pair = gui.add_image(np.zeros((1, 2, 3), np.uint8), label="image | render", format="jpeg", visible=False,
                                   order=self.ORDER + 3)  # fmt: skip
+
+    def add_choice(self, label: str, options: tuple[str, ...], initial: str, hint: str) -> None:
+        self.choice = self._gui.add_dropdown(label, options, initial_value=initial, hint=hint, order=self.ORDER + 0.5)
 
     def show_pair(self, pair: np.ndarray, note: str) -> None:
         """pair [H,W,3] uint8 (image, or image | render) shown with its note."""
