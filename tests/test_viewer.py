@@ -291,6 +291,24 @@ def _until(what, timeout: float = 60.0, every=None):
     return value
 
 
+def _open_pages(browser, server, n: int) -> tuple[list, list[int]]:
+    """n pages of the server's viewer opened one after the other: (pages, their client ids)."""
+    pages, ids = [], []
+    for _ in range(n):
+        pages.append(browser.new_page(viewport={"width": 900, "height": 640}))
+        pages[-1].goto(server.url)
+        pages[-1].wait_for_selector("canvas", timeout=60_000)
+        assert _until(lambda: len(server.server.get_clients()) == len(pages))
+        ids.append(max(set(server.server.get_clients()) - set(ids)))
+    return pages, ids
+
+
+def _point(camera, c2w: np.ndarray) -> None:
+    """Put a browser's camera (viser's client camera) at c2w [4,4] (OpenCV axes)."""
+    camera.up_direction = tuple(-c2w[:3, 1])
+    camera.position, camera.look_at = tuple(c2w[:3, 3]), tuple(c2w[:3, 3] + c2w[:3, 2])
+
+
 @pytest.mark.slow
 def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, tmp_path):
     sync = _browser_or_skip()
@@ -306,18 +324,10 @@ def test_two_browsers_each_see_the_map_decoded_for_their_own_camera(train_run, t
     try:
         with sync.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=str(CHROMIUM), args=BROWSER_ARGS)
-            pages, ids = [], []
-            for _ in range(2):
-                pages.append(browser.new_page(viewport={"width": 900, "height": 640}))
-                pages[-1].goto(server.url)
-                pages[-1].wait_for_selector("canvas", timeout=60_000)
-                assert _until(lambda: len(server.server.get_clients()) == len(pages))
-                ids.append(max(set(server.server.get_clients()) - set(ids)))
+            pages, ids = _open_pages(browser, server, 2)
             clients = server.server.get_clients()
             for client_id, c2w in zip(ids, (views[0], views[-1])):  # two keyframes' poses, one per browser
-                cam = clients[client_id].camera
-                cam.up_direction = tuple(-c2w[:3, 1])
-                cam.position, cam.look_at = tuple(c2w[:3, 3]), tuple(c2w[:3, 3] + c2w[:3, 2])
+                _point(clients[client_id].camera, c2w)
             # each browser's camera reported back, settled, and decoded for
             assert _until(lambda: set(server.own_nodes) == set(ids) and server.wait_idle(5), every=follow), server.own_nodes
             assert _until(lambda: not _until(follow, timeout=1.0), timeout=30) and server.wait_idle(5)  # no camera moved for 1 s
@@ -355,16 +365,8 @@ def test_each_browser_chooses_between_the_ply_and_the_map_decoded_for_its_camera
     try:
         with sync.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=str(CHROMIUM), args=BROWSER_ARGS)
-            pages, ids = [], []
-            for _ in range(2):
-                pages.append(browser.new_page(viewport={"width": 900, "height": 640}))
-                pages[-1].goto(server.url)
-                pages[-1].wait_for_selector("canvas", timeout=60_000)
-                assert _until(lambda: len(server.server.get_clients()) == len(pages))
-                ids.append(max(set(server.server.get_clients()) - set(ids)))
-            cam = server.server.get_clients()[ids[0]].camera
-            cam.up_direction = tuple(-c2w[:3, 1])
-            cam.position, cam.look_at = tuple(c2w[:3, 3]), tuple(c2w[:3, 3] + c2w[:3, 2])
+            pages, ids = _open_pages(browser, server, 2)
+            _point(server.server.get_clients()[ids[0]].camera, c2w)
             assert _until(lambda: server.browser_choices() == {ids[0]: PLY, ids[1]: PLY})
             ply = f"{len(server.nodes['/map/gaussians'].buffer)} (point_cloud.ply)"
             pages[0].get_by_role("combobox", name="Gaussians").click()  # the first browser alone chooses the map
