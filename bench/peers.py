@@ -20,9 +20,12 @@ budget (minutes, ascending) one OpenSplat run and one segs run, in alternating o
   budget (a 200-step pilot first, then the rate of the latest run, for a longer budget with its
   fall from the run before carried on: segs_rate_trend), in a child process
   timed from its launch; the clock stops while test views are scored (at the smaller budgets, for
-  the chart, and at the end), and the run stops at the budget (it counts where its schedules are
-  longer than its max_steps, as at 1 and 2 minutes on the sample: it is then the run sized to
-  the step it reached; elsewhere it is sized again, see fits).
+  the chart, and at the end), and the run stops at the budget. Where the size is under the
+  schedules' floor (a coarse-to-fine run shorter than mapping.min_schedule_steps, as at 1 and 2
+  minutes on the sample), the run is given the floor's steps and the budget stops it: its
+  schedules are the floor's whatever its max_steps, so the run stopped at step n is the run sized
+  to n steps, and it uses the whole budget instead of an estimate's share of it (segs_max_steps,
+  fits). Elsewhere a run that ends outside its budget is sized again (fits).
 Each program runs under /usr/bin/time -v (peak RSS, CPU %), with OMP_NUM_THREADS=2 and its own
 OpenMP wait policy (OpenSplat: libgomp's default; segs: decision 033's, chosen as it starts;
 OMP_WAIT_POLICY / GOMP_SPINCOUNT are removed from their environment). Before the budgets, `render_native` is checked against OpenSplat's own
@@ -267,6 +270,23 @@ def segs_steps(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> i
     return max(int(rate * seconds), 1)
 
 
+def segs_max_steps(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:
+    """max_steps of a segs run of budget_s: segs_steps, or the schedules' floor where it is larger
+    (the pilot's schedule_floor: mapping.min_schedule_steps of a coarse-to-fine run, else 0); the
+    budget then stops the run inside the floor's schedules (module docstring)."""
+    return max(segs_steps(budget_s, runs, rate_factor), runs[0].get("schedule_floor", 0))
+
+
+def cut_anywhere(run: dict) -> bool:
+    """Whether a segs run stopped at any step n is the run sized to n: its schedules were sized for
+    the floor (max_steps not above it), which a run sized to n < floor has too. Records without
+    schedule_floor: schedules longer than max_steps (the same condition)."""
+    scheduled = run.get("scheduled_steps", 0)
+    if "schedule_floor" in run:
+        return 0 < run["schedule_floor"] == scheduled
+    return scheduled > run.get("max_steps", float("inf"))
+
+
 def segs_rate_trend(runs: list[dict], seconds: float) -> float:
     """Factor on the latest run's mean rate for a run of `seconds` after startup: rate ~ seconds^a,
     a fitted on the latest run and the latest before it that trained at most 3/4 as long (a in
@@ -341,6 +361,7 @@ def segs_child(args) -> None:
         "budget_s": args.budget_s, "max_steps": args.max_steps, "steps": int(trainer.global_step), "startup_s": clock.first_step_s,
         "train_s": clock.seconds, "eval_s": sum(p["eval_s"] for p in clock.points), "points": clock.points,
         "schedule_done": trainer.global_step / args.max_steps, "scheduled_steps": int(module.model.total_steps),
+        "schedule_floor": int(cfg.mapping.min_schedule_steps) if cfg.mapping.num_downscales > 0 else 0,
         "omp": {k: os.environ.get(k) for k in WAIT_VARS}}))  # fmt: skip
 
 
@@ -371,7 +392,7 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
                     if method == "opensplat":
                         r = run_peer(binary, split, b, runs, out, source)
                     else:
-                        steps = segs_steps(b, runs, PILOT_RATE_FACTOR if len(runs) == 1 else 1.0)
+                        steps = segs_max_steps(b, runs, PILOT_RATE_FACTOR if len(runs) == 1 else 1.0)
                         r = run_segs(split_path, b, steps, marks, out)
                     runs.append(r)
                     r["attempt"], r["repeat"] = attempt, rep
@@ -388,12 +409,10 @@ def run_dataset(name: str, binary: str, budgets: list[float], work: Path, seed: 
 def fits(run: dict, budget_s: float) -> bool:
     """Whether a run used its budget: it ended within [FIT_LOW, FIT_HIGH] x budget and, for segs,
     it ran its schedules as sized: its max_steps ("schedule_done": the share of them run), or,
-    stopped by the budget, schedules longer than its max_steps (scheduled_steps: the run is cut
-    inside them wherever it stops, so one stopped by the budget at step n is the run sized to n
-    steps; where the schedules end at max_steps, a run stopped early skipped their end)."""
+    stopped by the budget, the floor's schedules (cut_anywhere: one stopped at step n is the run
+    sized to n steps; where the schedules end at max_steps, a run stopped early skipped their end)."""
     seconds = run["points"][-1]["seconds"]
-    cut_inside = run.get("scheduled_steps", 0) > run.get("max_steps", float("inf"))  # schedules longer than max_steps
-    done = run["method"] == "opensplat" or run["schedule_done"] >= 1.0 or cut_inside
+    done = run["method"] == "opensplat" or run["schedule_done"] >= 1.0 or cut_anywhere(run)
     return done and FIT_LOW * budget_s <= seconds <= FIT_HIGH * budget_s
 
 

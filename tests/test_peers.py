@@ -151,6 +151,17 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     stopped = {"method": "segs", "schedule_done": 0.9, "max_steps": 3000, "points": [{"seconds": 120.0}]}
     assert not peers.fits({**stopped, "scheduled_steps": 3000}, 120.0) and peers.fits({**stopped, "scheduled_steps": 6750}, 120.0)
     assert not peers.fits({"method": "opensplat", "points": [{"seconds": 60.0}]}, 120.0)
+    # under the schedules' floor (the pilot's: a coarse-to-fine run's mapping.min_schedule_steps) the
+    # run is given the floor's steps and stopped by the budget wherever it is; above it, sized as before
+    floored = {"steps": 200, "train_s": 12.0, "startup_s": 2.0, "schedule_floor": 6750}
+    assert peers.segs_max_steps(120.0, [floored]) == 6750 > peers.segs_steps(120.0, [floored])
+    assert peers.segs_max_steps(900.0, [floored]) == peers.segs_steps(900.0, [floored]) > 6750
+    assert peers.segs_max_steps(120.0, [{**floored, "schedule_floor": 0}]) == peers.segs_steps(120.0, [floored])
+    cut = {"method": "segs", "schedule_done": 0.45, "max_steps": 6750, "scheduled_steps": 6750, "schedule_floor": 6750,
+           "points": [{"seconds": 120.0}]}  # fmt: skip
+    assert peers.fits(cut, 120.0) and not peers.fits({**cut, "points": [{"seconds": 90.0}]}, 120.0)
+    sized = {**cut, "schedule_done": 0.9, "max_steps": 8000, "scheduled_steps": 8000}  # the schedules end at its max_steps
+    assert not peers.fits(sized, 120.0) and not peers.fits({**cut, "schedule_floor": 0, "max_steps": 6750}, 120.0)
 
 
 def _run(method: str, minutes: float, psnr: float, seconds: float, rss: float) -> dict:
