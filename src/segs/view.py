@@ -80,7 +80,7 @@ def shows_ply(run: SavedRun) -> bool:
 
 
 def snapshot(run: SavedRun, mapper, sequence, note: str | None, cameras: dict[int, BrowserCamera] | None = None, splats_id: int = 1,
-             shared: bool = True, dropped: frozenset[int] = frozenset()) -> Snapshot:
+             shared: bool = True, dropped: set[int] | frozenset[int] = frozenset()) -> Snapshot:
     """Everything the run folder shows, as one snapshot, numbered splats_id. With shared, the
     Gaussians every browser without its own sees: those of its point_cloud.ply when shows_ply,
     else the checkpoint's, every one decoded for the first keyframe; the checkpoint's decoded
@@ -204,7 +204,7 @@ class CameraFollower:
         self.decoded.mark(todo)
         self.own = (self.own - dropped) | todo.keys()
         self.snapshots += 1
-        self.server.submit(snapshot(*self.args, cameras=todo, splats_id=self.snapshots, shared=False, dropped=frozenset(dropped)))
+        self.server.submit(snapshot(*self.args, cameras=todo, splats_id=self.snapshots, shared=False, dropped=dropped))
         return True
 
 
