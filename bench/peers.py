@@ -12,8 +12,10 @@ views it holds out, the frontend's poses, the SLAM points its mapper receives), 
 budget (minutes, ascending) one OpenSplat run and one segs run, in alternating order:
 - OpenSplat (the binary given, its default schedule, `--keep-crs`) on the views cropped so that
   the principal point is centred (its CPU path ignores cx, cy); `-n` sized to end at the budget
-  from the step rates of the earlier runs (a 100-step pilot first); its time is measured from
-  launch to its last step; snapshots (`--save-every`) give the chart's intermediate points.
+  from the step rates of the earlier runs (a 100-step pilot first), or between two runs of the
+  budget that ended either side of it (its pace depends on -n: it densifies until n / 2); its
+  time is measured from launch to its last step; snapshots (`--save-every`) give the chart's
+  intermediate points.
   Scored with `render_native` (what its own renderer draws; bench/_opensplat.py) and also with a
   correct 3D-GS renderer of its PLY ("std.").
 - segs with the defaults of the dataset's experiment, `trainer.max_steps` sized to end at the
@@ -239,11 +241,17 @@ def peer_seconds(n: int, startup: float, rates: dict[int, float]) -> float:
 
 
 def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:
-    """Iterations for AIM x budget: the step the latest run printed at that time when it ran that
-    long, else the largest n whose predicted time fits (peer_seconds, binary search) and never
-    fewer than a run that ended before that time (then its steps at its own pace); rate_factor
-    scales the measured rates (below 1 after the pilot alone: its first steps are its fastest)."""
+    """Iterations for AIM x budget. Two runs of this budget that ended either side of it: n
+    interpolated between them (`bracketed`). Else the step the latest run printed at that time
+    when it ran that long, else the largest n whose predicted time fits (peer_seconds, binary
+    search) and never fewer than a run that ended before that time gives at its final pace
+    (`final_rate`); rate_factor scales the measured rates (below 1 after the pilot alone: its
+    first steps are its fastest)."""
     target = AIM * budget_s
+    tries = [(int(r["iterations"]), r["points"][-1]["seconds"]) for r in runs if r.get("budget_s") == budget_s]
+    n = bracketed(target, tries)
+    if n is not None:
+        return n
     log = runs[-1]["steps"]
     if log[-1][0] >= target:  # its own clock: steps slow down as it densifies
         return max(next(int(s) for t, s in log if t >= target), 1)
@@ -254,9 +262,37 @@ def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0)
         mid = (lo + hi + 1) // 2
         lo, hi = (mid, hi) if peer_seconds(mid, startup, rates) <= target else (lo, mid - 1)
     end_s, end_n = log[-1]
-    if lo <= end_n:  # the latest run ended early with end_n steps: more, at its own pace
-        lo = int(end_n * (target - startup) / max(end_s - startup, 1e-6))
+    if lo <= end_n:  # the latest run ended early with end_n steps: more, at the pace it ended with
+        lo = int(end_n + final_rate(log) * (target - end_s))
     return lo
+
+
+def bracketed(target: float, tries: list[tuple[int, float]]) -> int | None:
+    """n for a run ending at `target` seconds, interpolated linearly between the tries (n, seconds
+    from launch) that ended nearest below and nearest above it; None without such a pair or where
+    they disagree (more iterations in less time: the host's speed changed). OpenSplat densifies
+    until n / 2, so its pace depends on n and the latest run's log alone sizes the next one too long
+    after a short run and too short after a long one (on the sample at 2 minutes: 3,130 iterations
+    in 95 s, then 3,598 in 161 s)."""
+    below = [t for t in tries if t[1] < target]
+    above = [t for t in tries if t[1] >= target]
+    if not below or not above:
+        return None
+    (n0, s0), (n1, s1) = max(below, key=lambda t: t[1]), min(above, key=lambda t: t[1])
+    if n1 <= n0:
+        return None
+    return int(round(n0 + (n1 - n0) * (target - s0) / max(s1 - s0, 1e-6)))
+
+
+def final_rate(log: list) -> float:
+    """Steps/s of a run's log [[seconds, step], ...] over the last half of the steps of the
+    resolution phase it ended in (its whole log's mean rate where that is too short)."""
+    phase = peer_phase(int(log[-1][1]))
+    pts = [(t, s) for t, s in log if peer_phase(int(s)) == phase]
+    half = pts[len(pts) // 2 :]
+    if len(half) >= 2 and half[-1][0] > half[0][0]:
+        return (half[-1][1] - half[0][1]) / (half[-1][0] - half[0][0])
+    return (log[-1][1] - log[0][1]) / max(log[-1][0] - log[0][0], 1e-6)
 
 
 def segs_steps(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:

@@ -132,7 +132,23 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     slow = [[2.0 + s / 20.0, s] for s in range(1, 1001)]  # an earlier run at 20 it/s gives the rates
     short = [[2.0, 1]] + [[2.0 + 54.0 * k / 28, 80 * k] for k in range(1, 29)]  # then 2,240 steps by 56 s
     n_more = peers.peer_iterations(60.0, [{"steps": slow}, {"steps": short}])
-    assert n_more == int(2240 * (peers.AIM * 60.0 - 2.0) / (56.0 - 2.0)) > 2240
+    assert n_more == int(2240 + 80 / (54.0 / 28) * (peers.AIM * 60.0 - 56.0)) > 2240
+    # one that ended early in its slower second phase: extrapolated at the pace it ended with, not its
+    # mean (OpenSplat at 2 minutes: 3,130 iterations in 95 s, 12.9 it/s at the end, 33 on average)
+    knee = [[1.0 + s / 40.0, s] for s in range(1, 3001)] + [[76.0 + (s - 3000) / 10.0, s] for s in range(3001, 3031)]
+    crawl = [[1.0 + s / 40.0, s] for s in range(1, 3001)] + [[76.0 + (s - 3000) * 2.0, s] for s in range(3001, 3061)]
+    assert peers.final_rate(knee) == pytest.approx(10.0)
+    n_knee = peers.peer_iterations(120.0, [{"steps": crawl}, {"steps": knee}])  # crawl gives phase 1's rate: too slow
+    assert n_knee == int(3030 + peers.final_rate(knee) * (peers.AIM * 120.0 - 79.0)) == 3380  # its mean pace: 4,389
+    # two runs of this budget either side of its target: n between them, whatever the latest log says
+    over = {"budget_s": 120.0, "iterations": 3484, "points": [{"seconds": 151.0}], "steps": [[1.0, 1], [114.0, 3130], [151.0, 3484]]}
+    under = {"budget_s": 120.0, "iterations": 3130, "points": [{"seconds": 95.0}], "steps": [[1.0, 1], [95.0, 3130]]}
+    assert peers.peer_iterations(120.0, [{"steps": slow}, over]) == 3130  # one run: its log at the target
+    assert peers.peer_iterations(120.0, [{"steps": slow}, over, under]) == round(3130 + 354 * (114.0 - 95.0) / 56.0) == 3250
+    assert peers.peer_iterations(60.0, [{"steps": slow}, over, under]) != 3250  # another budget's runs do not count
+    assert peers.bracketed(114.0, [(3130, 95.0), (3200, 100.0), (3484, 151.0), (3600, 160.0)]) == round(3200 + 284 * 14 / 51)
+    assert peers.bracketed(114.0, [(3130, 95.0), (3200, 100.0)]) is None  # both short
+    assert peers.bracketed(114.0, [(3300, 95.0), (3200, 130.0)]) is None  # more in less time: the host changed
     # segs: the previous run's steps per second after its startup
     assert peers.segs_steps(120.0, [{"steps": 500, "train_s": 60.0, "startup_s": 10.0}]) == int(10.0 * 110.0 * peers.AIM)
     # a longer budget than the latest run's: the rate's fall from the run before it carried on (the
