@@ -241,17 +241,17 @@ def peer_seconds(n: int, startup: float, rates: dict[int, float]) -> float:
 
 
 def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0) -> int:
-    """Iterations for AIM x budget. Two runs of this budget that ended either side of it: n
-    interpolated between them (`bracketed`). Else the step the latest run printed at that time
-    when it ran that long, else the largest n whose predicted time fits (peer_seconds, binary
-    search) and never fewer than a run that ended before that time gives at its final pace
-    (`final_rate`); rate_factor scales the measured rates (below 1 after the pilot alone: its
-    first steps are its fastest)."""
-    target = AIM * budget_s
+    """Iterations for a run of budget_s. Two runs of this budget that ended either side of it: n
+    interpolated between them to end at the budget (`bracketed`). Else, for AIM x budget: the
+    step the latest run printed at that time when it ran that long, else the largest n whose
+    predicted time fits (peer_seconds, binary search) and never fewer than a run that ended
+    before that time gives at its final pace (`final_rate`); rate_factor scales the measured
+    rates (below 1 after the pilot alone: its first steps are its fastest)."""
     tries = [(int(r["iterations"]), r["points"][-1]["seconds"]) for r in runs if r.get("budget_s") == budget_s]
-    n = bracketed(target, tries)
+    n = bracketed(budget_s, tries)
     if n is not None:
         return n
+    target = AIM * budget_s
     log = runs[-1]["steps"]
     if log[-1][0] >= target:  # its own clock: steps slow down as it densifies
         return max(next(int(s) for t, s in log if t >= target), 1)
@@ -268,12 +268,13 @@ def peer_iterations(budget_s: float, runs: list[dict], rate_factor: float = 1.0)
 
 
 def bracketed(target: float, tries: list[tuple[int, float]]) -> int | None:
-    """n for a run ending at `target` seconds, interpolated linearly between the tries (n, seconds
-    from launch) that ended nearest below and nearest above it; None without such a pair or where
-    they disagree (more iterations in less time: the host's speed changed). OpenSplat densifies
-    until n / 2, so its pace depends on n and the latest run's log alone sizes the next one too long
-    after a short run and too short after a long one (on the sample at 2 minutes: 3,130 iterations
-    in 95 s, then 3,598 in 161 s)."""
+    """n for a run ending at `target` seconds (the budget: segs's runs under the schedules' floor
+    end at theirs), interpolated linearly between the tries (n, seconds from launch) that ended
+    nearest below and nearest above it; None without such a pair or where they disagree (more
+    iterations in less time: the host's speed changed). OpenSplat densifies until n / 2, so its
+    pace depends on n, and the latest run's log alone sizes the next run too long after a short
+    one and too short after a long one (the sample at 2 minutes: 3,130 iterations in 95 s, then
+    3,598 in 161 s)."""
     below = [t for t in tries if t[1] < target]
     above = [t for t in tries if t[1] >= target]
     if not below or not above:

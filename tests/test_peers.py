@@ -140,12 +140,12 @@ def test_pacing_sizes_runs_to_the_budget(peers):
     assert peers.final_rate(knee) == pytest.approx(10.0)
     n_knee = peers.peer_iterations(120.0, [{"steps": crawl}, {"steps": knee}])  # crawl gives phase 1's rate: too slow
     assert n_knee == int(3030 + peers.final_rate(knee) * (peers.AIM * 120.0 - 79.0)) == 3380  # its mean pace: 4,389
-    # two runs of this budget either side of its target: n between them, whatever the latest log says
+    # two runs of this budget either side of it: n between them to end at the budget, whatever the latest log says
     over = {"budget_s": 120.0, "iterations": 3484, "points": [{"seconds": 151.0}], "steps": [[1.0, 1], [114.0, 3130], [151.0, 3484]]}
     under = {"budget_s": 120.0, "iterations": 3130, "points": [{"seconds": 95.0}], "steps": [[1.0, 1], [95.0, 3130]]}
     assert peers.peer_iterations(120.0, [{"steps": slow}, over]) == 3130  # one run: its log at the target
-    assert peers.peer_iterations(120.0, [{"steps": slow}, over, under]) == round(3130 + 354 * (114.0 - 95.0) / 56.0) == 3250
-    assert peers.peer_iterations(60.0, [{"steps": slow}, over, under]) != 3250  # another budget's runs do not count
+    assert peers.peer_iterations(120.0, [{"steps": slow}, over, under]) == round(3130 + 354 * (120.0 - 95.0) / 56.0) == 3288
+    assert peers.peer_iterations(60.0, [{"steps": slow}, over, under]) != 3288  # another budget's runs do not count
     assert peers.bracketed(114.0, [(3130, 95.0), (3200, 100.0), (3484, 151.0), (3600, 160.0)]) == round(3200 + 284 * 14 / 51)
     assert peers.bracketed(114.0, [(3130, 95.0), (3200, 100.0)]) is None  # both short
     assert peers.bracketed(114.0, [(3300, 95.0), (3200, 130.0)]) is None  # more in less time: the host changed
