@@ -1,4 +1,4 @@
-"""bench/peers.py and bench/_opensplat.py: the export for OpenSplat, the crop that centres the
+"""bench/peers.py, bench/_pacing.py and bench/_opensplat.py: the export for OpenSplat, the crop that centres the
 principal point, the peer's renderers, the scoring, the pacing and the report, without the
 OpenSplat binary; the end-to-end run needs it ($OPENSPLAT) and skips without it."""
 from __future__ import annotations
@@ -27,6 +27,11 @@ def _load(name: str):
 @pytest.fixture(scope="module")
 def peers():
     return _load("peers")
+
+
+@pytest.fixture(scope="module")
+def pacing():
+    return _load("_pacing")
 
 
 @pytest.fixture(scope="module")
@@ -116,68 +121,68 @@ def test_scores_of_a_perfect_render_and_of_a_shifted_one(peers):
     assert 5 < other["psnr"] < 20 and other["psnr_crop"] != other["psnr"]
 
 
-def test_pacing_sizes_runs_to_the_budget(peers):
+def test_pacing_sizes_runs_to_the_budget(pacing):
     # OpenSplat: 40 it/s at 1/4 size after 2 s of startup; the next phases are not seen yet
     log = [[2.0 + s / 40.0, s] for s in range(1, 2001)]
-    n = peers.peer_iterations(60.0, [{"steps": log}])
-    startup, rates = peers.peer_rates([{"steps": log}])
+    n = pacing.peer_iterations(60.0, [{"steps": log}])
+    startup, rates = pacing.peer_rates([{"steps": log}])
     assert startup == pytest.approx(2.025) and rates == {0: pytest.approx(40.0)}
-    assert peers.peer_seconds(n, startup, rates) <= peers.AIM * 60.0 < peers.peer_seconds(n + 1, startup, rates)
-    assert n == int((peers.AIM * 60.0 - startup) * 40.0)  # all at 1/4 size
+    assert pacing.peer_seconds(n, startup, rates) <= pacing.AIM * 60.0 < pacing.peer_seconds(n + 1, startup, rates)
+    assert n == int((pacing.AIM * 60.0 - startup) * 40.0)  # all at 1/4 size
     # a run that ran past the target: the step it had printed by then
-    assert peers.peer_iterations(20.0, [{"steps": log}]) == next(s for t, s in log if t >= peers.AIM * 20.0)
-    long = peers.peer_iterations(600.0, [{"steps": log}])  # crosses into the slower phases
-    assert peers.peer_phase(long) == 2 and peers.peer_seconds(long, startup, rates) <= peers.AIM * 600.0
+    assert pacing.peer_iterations(20.0, [{"steps": log}]) == next(s for t, s in log if t >= pacing.AIM * 20.0)
+    long = pacing.peer_iterations(600.0, [{"steps": log}])  # crosses into the slower phases
+    assert pacing.peer_phase(long) == 2 and pacing.peer_seconds(long, startup, rates) <= pacing.AIM * 600.0
     # a run that ended early although its rates predicted more time: never fewer steps than it ran
     slow = [[2.0 + s / 20.0, s] for s in range(1, 1001)]  # an earlier run at 20 it/s gives the rates
     short = [[2.0, 1]] + [[2.0 + 54.0 * k / 28, 80 * k] for k in range(1, 29)]  # then 2,240 steps by 56 s
-    n_more = peers.peer_iterations(60.0, [{"steps": slow}, {"steps": short}])
-    assert n_more == int(2240 + 80 / (54.0 / 28) * (peers.AIM * 60.0 - 56.0)) > 2240
+    n_more = pacing.peer_iterations(60.0, [{"steps": slow}, {"steps": short}])
+    assert n_more == int(2240 + 80 / (54.0 / 28) * (pacing.AIM * 60.0 - 56.0)) > 2240
     # one that ended early in its slower second phase: extrapolated at the pace it ended with, not its
     # mean (OpenSplat at 2 minutes: 3,130 iterations in 95 s, 12.9 it/s at the end, 33 on average)
     knee = [[1.0 + s / 40.0, s] for s in range(1, 3001)] + [[76.0 + (s - 3000) / 10.0, s] for s in range(3001, 3031)]
     crawl = [[1.0 + s / 40.0, s] for s in range(1, 3001)] + [[76.0 + (s - 3000) * 2.0, s] for s in range(3001, 3061)]
-    assert peers.final_rate(knee) == pytest.approx(10.0)
-    n_knee = peers.peer_iterations(120.0, [{"steps": crawl}, {"steps": knee}])  # crawl gives phase 1's rate: too slow
-    assert n_knee == int(3030 + peers.final_rate(knee) * (peers.AIM * 120.0 - 79.0)) == 3380  # its mean pace: 4,389
+    assert pacing.final_rate(knee) == pytest.approx(10.0)
+    n_knee = pacing.peer_iterations(120.0, [{"steps": crawl}, {"steps": knee}])  # crawl gives phase 1's rate: too slow
+    assert n_knee == int(3030 + pacing.final_rate(knee) * (pacing.AIM * 120.0 - 79.0)) == 3380  # its mean pace: 4,389
     # two runs of this budget either side of it: n between them to end at the budget, whatever the latest log says
     over = {"budget_s": 120.0, "iterations": 3484, "points": [{"seconds": 151.0}], "steps": [[1.0, 1], [114.0, 3130], [151.0, 3484]]}
     under = {"budget_s": 120.0, "iterations": 3130, "points": [{"seconds": 95.0}], "steps": [[1.0, 1], [95.0, 3130]]}
-    assert peers.peer_iterations(120.0, [{"steps": slow}, over]) == 3130  # one run: its log at the target
-    assert peers.peer_iterations(120.0, [{"steps": slow}, over, under]) == round(3130 + 354 * (120.0 - 95.0) / 56.0) == 3288
-    assert peers.peer_iterations(60.0, [{"steps": slow}, over, under]) != 3288  # another budget's runs do not count
-    assert peers.bracketed(114.0, [(3130, 95.0), (3200, 100.0), (3484, 151.0), (3600, 160.0)]) == round(3200 + 284 * 14 / 51)
-    assert peers.bracketed(114.0, [(3130, 95.0), (3200, 100.0)]) is None  # both short
-    assert peers.bracketed(114.0, [(3300, 95.0), (3200, 130.0)]) is None  # more in less time: the host changed
+    assert pacing.peer_iterations(120.0, [{"steps": slow}, over]) == 3130  # one run: its log at the target
+    assert pacing.peer_iterations(120.0, [{"steps": slow}, over, under]) == round(3130 + 354 * (120.0 - 95.0) / 56.0) == 3288
+    assert pacing.peer_iterations(60.0, [{"steps": slow}, over, under]) != 3288  # another budget's runs do not count
+    assert pacing.bracketed(114.0, [(3130, 95.0), (3200, 100.0), (3484, 151.0), (3600, 160.0)]) == round(3200 + 284 * 14 / 51)
+    assert pacing.bracketed(114.0, [(3130, 95.0), (3200, 100.0)]) is None  # both short
+    assert pacing.bracketed(114.0, [(3300, 95.0), (3200, 130.0)]) is None  # more in less time: the host changed
     # segs: the previous run's steps per second after its startup
-    assert peers.segs_steps(120.0, [{"steps": 500, "train_s": 60.0, "startup_s": 10.0}]) == int(10.0 * 110.0 * peers.AIM)
+    assert pacing.segs_steps(120.0, [{"steps": 500, "train_s": 60.0, "startup_s": 10.0}]) == int(10.0 * 110.0 * pacing.AIM)
     # a longer budget than the latest run's: the rate's fall from the run before it carried on (the
     # sample at 9cb725e: 4 and 8 minutes; sized without the trend, its 15-minute run asked for 31,674
     # steps and ran 20,317 in 900 s; measured 17,834 steps in 832 s)
     pilot, r4, r8 = ({"steps": n, "train_s": t, "startup_s": 5.0} for n, t in ((200, 12.0), (6963, 222.0), (12105, 455.0)))
     a = np.log((12105 / 450) / (6963 / 217)) / np.log(450 / 217)
     assert -0.3 < a < -0.2
-    assert peers.segs_steps(900.0, [pilot, r4, r8]) == int(12105 / 450 * (895 * peers.AIM / 450) ** a * 895 * peers.AIM)
-    assert 19000 < peers.segs_steps(900.0, [pilot, r4, r8]) < 20000
-    assert peers.segs_steps(470.0, [pilot, r4, r8]) == int(12105 / 450 * 465 * peers.AIM)  # not longer than the latest: no trend
-    assert peers.segs_steps(900.0, [pilot, r8]) == int(12105 / 450 * 895 * peers.AIM)  # no earlier run but the pilot
-    assert peers.fits({"method": "segs", "schedule_done": 1.0, "points": [{"seconds": 110.0}]}, 120.0)
-    assert not peers.fits({"method": "segs", "schedule_done": 0.8, "points": [{"seconds": 120.0}]}, 120.0)
+    assert pacing.segs_steps(900.0, [pilot, r4, r8]) == int(12105 / 450 * (895 * pacing.AIM / 450) ** a * 895 * pacing.AIM)
+    assert 19000 < pacing.segs_steps(900.0, [pilot, r4, r8]) < 20000
+    assert pacing.segs_steps(470.0, [pilot, r4, r8]) == int(12105 / 450 * 465 * pacing.AIM)  # not longer than the latest: no trend
+    assert pacing.segs_steps(900.0, [pilot, r8]) == int(12105 / 450 * 895 * pacing.AIM)  # no earlier run but the pilot
+    assert pacing.fits({"method": "segs", "schedule_done": 1.0, "points": [{"seconds": 110.0}]}, 120.0)
+    assert not pacing.fits({"method": "segs", "schedule_done": 0.8, "points": [{"seconds": 120.0}]}, 120.0)
     # stopped by the budget: the schedules' end skipped where they end at max_steps, not where they are longer
     stopped = {"method": "segs", "schedule_done": 0.9, "max_steps": 3000, "points": [{"seconds": 120.0}]}
-    assert not peers.fits({**stopped, "scheduled_steps": 3000}, 120.0) and peers.fits({**stopped, "scheduled_steps": 6750}, 120.0)
-    assert not peers.fits({"method": "opensplat", "points": [{"seconds": 60.0}]}, 120.0)
+    assert not pacing.fits({**stopped, "scheduled_steps": 3000}, 120.0) and pacing.fits({**stopped, "scheduled_steps": 6750}, 120.0)
+    assert not pacing.fits({"method": "opensplat", "points": [{"seconds": 60.0}]}, 120.0)
     # under the schedules' floor (the pilot's: a coarse-to-fine run's mapping.min_schedule_steps) the
     # run is given the floor's steps and stopped by the budget wherever it is; above it, sized as before
     floored = {"steps": 200, "train_s": 12.0, "startup_s": 2.0, "schedule_floor": 6750}
-    assert peers.segs_max_steps(120.0, [floored]) == 6750 > peers.segs_steps(120.0, [floored])
-    assert peers.segs_max_steps(900.0, [floored]) == peers.segs_steps(900.0, [floored]) > 6750
-    assert peers.segs_max_steps(120.0, [{**floored, "schedule_floor": 0}]) == peers.segs_steps(120.0, [floored])
+    assert pacing.segs_max_steps(120.0, [floored]) == 6750 > pacing.segs_steps(120.0, [floored])
+    assert pacing.segs_max_steps(900.0, [floored]) == pacing.segs_steps(900.0, [floored]) > 6750
+    assert pacing.segs_max_steps(120.0, [{**floored, "schedule_floor": 0}]) == pacing.segs_steps(120.0, [floored])
     cut = {"method": "segs", "schedule_done": 0.45, "max_steps": 6750, "scheduled_steps": 6750, "schedule_floor": 6750,
            "points": [{"seconds": 120.0}]}  # fmt: skip
-    assert peers.fits(cut, 120.0) and not peers.fits({**cut, "points": [{"seconds": 90.0}]}, 120.0)
+    assert pacing.fits(cut, 120.0) and not pacing.fits({**cut, "points": [{"seconds": 90.0}]}, 120.0)
     sized = {**cut, "schedule_done": 0.9, "max_steps": 8000, "scheduled_steps": 8000}  # the schedules end at its max_steps
-    assert not peers.fits(sized, 120.0) and not peers.fits({**cut, "schedule_floor": 0, "max_steps": 6750}, 120.0)
+    assert not pacing.fits(sized, 120.0) and not pacing.fits({**cut, "schedule_floor": 0, "max_steps": 6750}, 120.0)
 
 
 def _run(method: str, minutes: float, psnr: float, seconds: float, rss: float) -> dict:
@@ -295,7 +300,7 @@ def test_a_repeated_budget_gives_the_median_run_and_the_range(peers):
     assert peers.report(peers.merge([peers.merge([later]), record])) == peers.report(peers.merge([later, record]))
 
 
-def test_repeats_alternate_the_order_and_size_each_run_from_the_latest(peers, monkeypatch, tmp_path):
+def test_repeats_alternate_the_order_and_size_each_run_from_the_latest(peers, pacing, monkeypatch, tmp_path):
     calls = []
 
     def fake_peer(binary, split, budget_s, runs, out, source):
@@ -318,8 +323,8 @@ def test_repeats_alternate_the_order_and_size_each_run_from_the_latest(peers, mo
     peers.run_dataset("sample", "opensplat", [1, 2], tmp_path, 0, record, lambda: None, tries=1, repeats=2)
     assert [c[:2] for c in calls] == [("opensplat", 60.0), ("segs", 60.0), ("segs", 60.0), ("opensplat", 60.0),
                                       ("segs", 120.0), ("opensplat", 120.0), ("opensplat", 120.0), ("segs", 120.0)]  # fmt: skip
-    assert calls[1][2] == int(200 / 10.0 * peers.PILOT_RATE_FACTOR * 58.0 * peers.AIM)  # the pilot's rate
-    assert calls[2][2] == int(1000 / 58.0 * 58.0 * peers.AIM)  # then the latest run's
+    assert calls[1][2] == int(200 / 10.0 * pacing.PILOT_RATE_FACTOR * 58.0 * pacing.AIM)  # the pilot's rate
+    assert calls[2][2] == int(1000 / 58.0 * 58.0 * pacing.AIM)  # then the latest run's
     runs = record["datasets"][0]["runs"]
     assert [(r["method"], r["budget_min"], r["repeat"]) for r in runs][:4] == [
         ("opensplat", 1, 0), ("segs", 1, 0), ("segs", 1, 1), ("opensplat", 1, 1)]  # fmt: skip
