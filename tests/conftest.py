@@ -101,6 +101,25 @@ def orb_v2_state(fe) -> dict:
     return {"format": "segs.orb.v2", "blob": blob}
 
 
+def se3(rv, t):
+    """[4,4] pose from a rotation vector [3] (radians, cv2.Rodrigues) and a translation [3]."""
+    import cv2
+    import numpy as np
+
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(np.asarray(rv, np.float64).reshape(3, 1))[0], t
+    return T
+
+
+def project(K, T, P):
+    """Pinhole projection of world points P [N,3] by the world-to-camera T [4,4] with intrinsics
+    K [3,3]: (pixels [N,2], depths [N])."""
+    import numpy as np
+
+    pc = P @ T[:3, :3].T + T[:3, 3]
+    return np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], 1), pc[:, 2]
+
+
 def load_bench(name: str, module: str | None = None):
     """A bench/ script as a module (bench/ is not a package): load_bench("mono_forward")."""
     path = Path(__file__).resolve().parents[1] / "bench" / f"{name}.py"
