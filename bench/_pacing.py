@@ -8,7 +8,7 @@ PEER_PHASE_STEPS = 3000  # its --resolution-schedule default: 1/4 size, then 1/2
 PEER_PHASE_SLOWDOWN = 0.4  # rate of a resolution phase not seen yet, relative to the one before
 AIM = 0.95  # runs are sized to end at this fraction of the budget (later steps are slower)
 PILOT_RATE_FACTOR = 0.8  # the first budget's rates from a pilot alone (small map, fastest steps)
-TRIES, FIT_LOW, FIT_HIGH = 3, 0.85, 1.08  # a run ending outside [LOW, HIGH] x budget is sized again from its own rates
+TRIES, FIT_LOW, FIT_HIGH = 3, 0.85, 1.08  # a run ending outside [LOW, HIGH] x budget is sized again (peer_iterations, segs_max_steps)
 
 
 def peer_phase(step: int) -> int:
