@@ -22,12 +22,22 @@ def peer_rates(runs: list[dict]) -> tuple[float, dict[int, float]]:
     startup, rates = runs[-1]["steps"][0][0], {}
     for phase in range(3):
         for r in reversed(runs):
-            pts = [(t, s) for t, s in r["steps"] if peer_phase(int(s)) == phase]
+            pts = _phase_points(r["steps"], phase)
             if len(pts) >= 40:
-                half = pts[len(pts) // 2 :]
-                rates[phase] = (half[-1][1] - half[0][1]) / max(half[-1][0] - half[0][0], 1e-6)
+                rates[phase] = _late_rate(pts)
                 break
     return startup, rates
+
+
+def _phase_points(log: list, phase: int) -> list[tuple[float, int]]:
+    """The (seconds, step) points of a log [[seconds, step], ...] inside one resolution phase."""
+    return [(t, s) for t, s in log if peer_phase(int(s)) == phase]
+
+
+def _late_rate(pts: list[tuple[float, int]]) -> float:
+    """Steps/s over the last half of the points."""
+    half = pts[len(pts) // 2 :]
+    return (half[-1][1] - half[0][1]) / max(half[-1][0] - half[0][0], 1e-6)
 
 
 def peer_seconds(n: int, startup: float, rates: dict[int, float]) -> float:
@@ -82,17 +92,15 @@ def bracketed(target: float, tries: list[tuple[int, float]]) -> int | None:
     (n0, s0), (n1, s1) = max(below, key=lambda t: t[1]), min(above, key=lambda t: t[1])
     if n1 <= n0:
         return None
-    return int(round(n0 + (n1 - n0) * (target - s0) / max(s1 - s0, 1e-6)))
+    return int(round(n0 + (n1 - n0) * (target - s0) / (s1 - s0)))  # s0 < target <= s1
 
 
 def final_rate(log: list) -> float:
     """Steps/s of a run's log [[seconds, step], ...] over the last half of the steps of the
     resolution phase it ended in (its whole log's mean rate where that is too short)."""
-    phase = peer_phase(int(log[-1][1]))
-    pts = [(t, s) for t, s in log if peer_phase(int(s)) == phase]
-    half = pts[len(pts) // 2 :]
-    if len(half) >= 2 and half[-1][0] > half[0][0]:
-        return (half[-1][1] - half[0][1]) / (half[-1][0] - half[0][0])
+    pts = _phase_points(log, peer_phase(int(log[-1][1])))
+    if len(pts) >= 3 and pts[-1][0] > pts[len(pts) // 2][0]:
+        return _late_rate(pts)
     return (log[-1][1] - log[0][1]) / max(log[-1][0] - log[0][0], 1e-6)
 
 
