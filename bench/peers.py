@@ -525,6 +525,8 @@ def measure(args) -> dict:
 
     torch.set_num_threads(2)
     if "7scenes" in args.datasets and not (SEVEN_SCENES / "seq").is_dir():
+        if args.datasets == ["7scenes"]:
+            raise SystemExit(f"error: no dataset to run: 7scenes's shared frames are not at {SEVEN_SCENES} (set $SEGS_SHARED_DATA)")
         print(f"peers: skipping 7scenes: the shared frames are not at {SEVEN_SCENES}", file=sys.stderr)
         args.datasets.remove("7scenes")
     command = " ".join(["python bench/peers.py"] + [a for a in sys.argv[1:] if a != args.opensplat and not a.startswith("--opensplat")])

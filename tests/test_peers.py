@@ -264,6 +264,15 @@ def test_a_missing_binary_is_one_line_and_exit_2(tmp_path):
     assert res.returncode != 0 and res.stderr.strip() == "error: --repeats must be at least 1, got 0"
 
 
+def test_seven_scenes_alone_without_its_frames_is_one_line(tmp_path):
+    env = {**os.environ, "OPENSPLAT": "/bin/true", "SEGS_SHARED_DATA": str(tmp_path)}
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--datasets", "7scenes", "--out", str(tmp_path / "p.json")],
+                         env=env, capture_output=True, text=True)  # fmt: skip
+    assert res.returncode != 0 and res.stderr.strip().count("\n") == 0
+    assert res.stderr.startswith("error: no dataset to run") and str(tmp_path / "7scenes_redkitchen_0000_0599") in res.stderr
+    assert not (tmp_path / "p.json").exists()
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not os.access(os.environ.get("OPENSPLAT", "/nonexistent"), os.X_OK),
                     reason="needs the OpenSplat binary: OPENSPLAT=PATH (../shared/peers/opensplat/build.sh builds it)")
