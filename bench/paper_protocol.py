@@ -1,6 +1,7 @@
 """The paper's protocol timed end to end: `python -m segs.train` on the 7-Scenes frames (640x480,
-ORB RGB-D frontend, schedules sized to 30,000 iterations, keyframes train, every other frame is a
-test view), with the GPU's utilisation sampled beside it.
+full size throughout (`mapping.num_downscales=0`; the experiment's own default trains coarse to
+fine), ORB RGB-D frontend, schedules sized to 30,000 iterations, keyframes train, every other frame
+is a test view), with the GPU's utilisation sampled beside it.
 
     python bench/paper_protocol.py                             # CUDA: gsplat, 30,000 steps
     python bench/paper_protocol.py --minutes 5                 # training stopped after 5 minutes (trainer.max_time)
@@ -36,7 +37,7 @@ KEYS = ("psnr", "ssim", "lpips", "test_views", "ate_rmse_m", "frames", "frames_t
 def command(experiment: str, device: str, steps: int, minutes: float | None, run_dir: Path, extra: list[str]) -> list[str]:
     """The segs.train command of the protocol on `device` ("cuda" or "cpu")."""
     cmd = [sys.executable, "-m", "segs.train", f"+experiment={experiment}", f"trainer.max_steps={steps}",
-           "eval.save_renders=0", f"hydra.run.dir={run_dir}"]  # fmt: skip
+           "mapping.num_downscales=0", "eval.save_renders=0", f"hydra.run.dir={run_dir}"]  # fmt: skip
     if device == "cuda":
         cmd += ["raster.backend=cuda", "trainer.accelerator=gpu"]
     if minutes is not None:

@@ -22,8 +22,8 @@ def protocol():
 def test_the_command_is_the_users_segs_train_with_the_device_and_time_box(protocol, tmp_path):
     cmd = protocol.command("seven_scenes_rgbd", "cuda", 30000, 4.5, tmp_path, ["slam_mode=process"])
     assert cmd[1:4] == ["-m", "segs.train", "+experiment=seven_scenes_rgbd"]
-    assert {"trainer.max_steps=30000", "raster.backend=cuda", "trainer.accelerator=gpu", "trainer.max_time=00:00:04:30",
-            f"hydra.run.dir={tmp_path}"} <= set(cmd) and cmd[-1] == "slam_mode=process"  # fmt: skip
+    assert {"trainer.max_steps=30000", "mapping.num_downscales=0", "raster.backend=cuda", "trainer.accelerator=gpu",
+            "trainer.max_time=00:00:04:30", f"hydra.run.dir={tmp_path}"} <= set(cmd) and cmd[-1] == "slam_mode=process"  # fmt: skip
     cpu = protocol.command("sample", "cpu", 300, None, tmp_path, [])
     assert not any(c.startswith(("raster.backend", "trainer.accelerator", "trainer.max_time")) for c in cpu)
 

@@ -89,6 +89,15 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "segs.train", *args], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.parametrize("experiment, downscales, schedule", [("sample", 2, 6750), ("seven_scenes_rgbd", 2, 6750),
+                                                                ("seven_scenes_mono", 2, 6750), ("tum_rgbd", 0, 3000)])
+def test_which_experiments_train_coarse_to_fine(experiment, downscales, schedule, tmp_path):
+    # decision 020: the sample and the 7-Scenes experiments train coarse to fine inside the 6,750-step
+    # floor; the other dataset experiments at full size, their schedules the run's steps
+    cfg = compose([f"+experiment={experiment}", "trainer.max_steps=3000"], output_dir=str(tmp_path))
+    assert cfg.mapping.num_downscales == downscales and cfg.model.total_steps == schedule
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("override", ["+experiment=does_not_exist", "+ablation=does_not_exist"])
 def test_cli_unknown_experiment_or_ablation_fails_with_one_clear_line(tmp_path, override):
