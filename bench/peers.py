@@ -37,7 +37,7 @@ With --repeats N every budget runs N times (both methods, the order alternated);
 each method's median run (by final PSNR; its seconds, steps and size), the lowest and highest PSNR
 of the N runs in brackets, the highest peak RSS, and the difference of the medians.
 
-Output: outputs/bench/peers.json (every run and point), docs/performance/peers.png (PSNR against
+Output: outputs/bench/peers.json (every run and point; a point's "views": each test view's PSNR), docs/performance/peers.png (PSNR against
 wall seconds), the markdown tables on stdout and, with --write, between the markers
 <!-- peers:begin --> and <!-- peers:end --> of that file.
 """
@@ -149,7 +149,8 @@ def view_source(split: dict):
 
 def score_views(render, sequence, trajectory: dict, test: list[int], crop: dict) -> dict:
     """Mean PSNR / SSIM (segs.modules.metrics) of render(w2c [4,4], camera) -> [H,W,3] over the test
-    views, on the full frames and on the region OpenSplat trains on (the crop)."""
+    views, on the full frames and on the region OpenSplat trains on (the crop); "views": each test
+    view's full-frame PSNR, keyed by its frame number (a string, as JSON keeps it)."""
     import torch
 
     from segs.modules.metrics import psnr, ssim
@@ -163,7 +164,8 @@ def score_views(render, sequence, trajectory: dict, test: list[int], crop: dict)
         cut = (slice(crop["top"], h - crop["bottom"]), slice(crop["left"], w - crop["right"]))
         rows.append((psnr(image, gt), ssim(image, gt), psnr(image[cut], gt[cut]), ssim(image[cut], gt[cut])))
     m = np.mean(rows, axis=0)
-    return {"psnr": float(m[0]), "ssim": float(m[1]), "psnr_crop": float(m[2]), "ssim_crop": float(m[3]), "test_views": len(rows)}
+    return {"psnr": float(m[0]), "ssim": float(m[1]), "psnr_crop": float(m[2]), "ssim_crop": float(m[3]), "test_views": len(rows),
+            "views": {str(idx): float(r[0]) for idx, r in zip(test, rows)}}  # fmt: skip
 
 
 def _camera_dict(camera) -> dict:

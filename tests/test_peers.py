@@ -119,6 +119,8 @@ def test_scores_of_a_perfect_render_and_of_a_shifted_one(peers):
     assert res["ssim"] == pytest.approx(1.0, abs=1e-5) and res["psnr"] > 100 and res["test_views"] == 2
     other = peers.score_views(lambda w2c, cam: torch.full((240, 320, 3), 0.5), seq, {i: np.eye(4) for i in views}, views, crop)
     assert 5 < other["psnr"] < 20 and other["psnr_crop"] != other["psnr"]
+    assert list(other["views"]) == ["1", "9"] and np.mean(list(other["views"].values())) == pytest.approx(other["psnr"])
+    assert other["views"]["1"] != other["views"]["9"]  # each view scored against its own frame
 
 
 def test_pacing_sizes_runs_to_the_budget(pacing):
