@@ -37,7 +37,8 @@ With --repeats N every budget runs N times (both methods, the order alternated);
 each method's median run (by final PSNR; its seconds, steps and size), the lowest and highest PSNR
 of the N runs in brackets, the highest peak RSS, and the difference of the medians.
 
-Output: outputs/bench/peers.json (every run and point; a point's "views": each test view's PSNR), docs/performance/peers.png (PSNR against
+Output: outputs/bench/peers.json (every run and point; a point's "views": each test view's PSNR,
+which `--report JSON ... --views` lists for the median runs), docs/performance/peers.png (PSNR against
 wall seconds), the markdown tables on stdout and, with --write, between the markers
 <!-- peers:begin --> and <!-- peers:end --> of that file.
 """
@@ -340,6 +341,28 @@ def _spread(runs: list[dict]) -> str:
     return f" [{min(psnr):.2f}-{max(psnr):.2f}, {len(psnr)} runs]" if len(psnr) > 1 else ""
 
 
+def view_rows(entry: dict) -> list[str]:
+    """Markdown rows of each budget's test views: the median runs' final PSNR per view, both methods
+    and the difference (records from 4466f93 on; older runs kept no per-view figures)."""
+    out = []
+    for minutes in _budgets(entry):
+        p, s = _final(entry, "opensplat", minutes), _final(entry, "segs", minutes)
+        pv, sv = (r["points"][-1].get("views") if r else None for r in (p, s))
+        if not pv or not sv:
+            out.append(f"| {entry['dataset']}, {minutes:g} min | no per-view figures in this record | | |")
+            continue
+        for view in sorted(set(pv) & set(sv), key=int):
+            theirs, ours = pv[view], sv[view]
+            out.append(f"| {entry['dataset']}, {minutes:g} min, view {view} | {theirs:.2f} | {ours:.2f} | {ours - theirs:+.2f} |")
+    return out
+
+
+def views_report(record: dict) -> str:
+    """--views: the per-view table of every dataset and budget of a record."""
+    head = ["| data, budget, test view | OpenSplat PSNR | segs PSNR | segs - OpenSplat dB |", "|---|---|---|---|"]
+    return "\n".join(head + [row for e in record["datasets"] for row in view_rows(e)])
+
+
 def _budgets(entry: dict) -> list[float]:
     return sorted({r["budget_min"] for r in entry["runs"]})
 
@@ -492,6 +515,7 @@ def main() -> None:
     p.add_argument("--write", type=Path, default=None, help="a markdown file with the peers markers (docs/performance.md)")
     p.add_argument("--report", type=Path, nargs="+", default=None,
                    help="only print the tables and redraw the chart of these output JSONs (merged in order)")
+    p.add_argument("--views", action="store_true", help="with --report: print each test view's PSNR (the median runs) instead")
     p.add_argument("--segs-run", help=argparse.SUPPRESS)
     for hidden in ("--budget-s", "--launch"):
         p.add_argument(hidden, type=float, help=argparse.SUPPRESS)
@@ -508,6 +532,10 @@ def main() -> None:
         if missing:
             raise SystemExit(f"error: no such report JSON: {missing[0]}")
         record = merge([json.loads(p.read_text()) for p in args.report])
+        if args.views:
+            return print(views_report(record))
+    elif args.views:
+        raise SystemExit("error: --views needs --report JSON [JSON ...]")
     else:
         record = measure(args)
     chart(record, args.chart)

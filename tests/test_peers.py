@@ -257,6 +257,22 @@ def test_reports_of_several_runs_share_one_table(peers, tmp_path):
     assert res.returncode != 0 and res.stderr.strip() == f"error: no such report JSON: {tmp_path / 'none.json'}"
 
 
+def test_the_views_report_lists_each_test_view_of_the_median_runs(peers, tmp_path):
+    record = _record()
+    runs = record["datasets"][0]["runs"]
+    runs[0]["points"][-1]["views"] = {"8": 21.0, "0": 23.0}  # OpenSplat at 1 minute
+    runs[1]["points"][-1]["views"] = {"0": 24.5, "8": 22.5}  # segs at 1 minute; the 2-minute runs kept none
+    rows = [ln for ln in peers.views_report(record).splitlines() if ln.startswith("| sample")]
+    assert rows == ["| sample, 1 min, view 0 | 23.00 | 24.50 | +1.50 |", "| sample, 1 min, view 8 | 21.00 | 22.50 | +1.50 |",
+                    "| sample, 2 min | no per-view figures in this record | | |"]  # fmt: skip
+    a = tmp_path / "a.json"
+    a.write_text(json.dumps(record))
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--report", str(a), "--views"], capture_output=True, text=True)
+    assert res.returncode == 0 and "| sample, 1 min, view 8 | 21.00 | 22.50 | +1.50 |" in res.stdout
+    res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--views"], capture_output=True, text=True)
+    assert res.returncode != 0 and res.stderr.strip() == "error: --views needs --report JSON [JSON ...]"
+
+
 def test_a_missing_binary_is_one_line_and_exit_2(tmp_path):
     env = {**os.environ, "OPENSPLAT": str(tmp_path / "nothing")}
     res = subprocess.run([sys.executable, str(ROOT / "bench" / "peers.py"), "--datasets", "sample"], env=env, capture_output=True,
