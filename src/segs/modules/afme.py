@@ -68,13 +68,20 @@ class AppearanceEncoder(nn.Module):
             i = int(torch.nonzero(self.center_ids == kf_id)[0, 0])
             self.centers[i] = center.to(self.centers)
 
-    def forward(self, w2c: torch.Tensor, kf_id: int | None) -> torch.Tensor | None:
-        """Embedding [A] for a view, or None when appearance is off."""
+    def weights(self) -> nn.Module | None:
+        """The learned part: the pose encoder (linear, mlp), the embedding table (ae), or None."""
+        if self.kind == "none":
+            return None
+        return self.table if self.kind == "ae" else self.net
+
+    def forward(self, w2c: torch.Tensor, kf_id: int | None, weights: nn.Module | None = None) -> torch.Tensor | None:
+        """Embedding [A] for a view, or None when appearance is off. weights: a module shaped as
+        `self.weights()` to use instead of it (the decoder average, segs.modules.decoder_average)."""
         if self.kind == "none":
             return None
         if self.kind == "ae":
-            return self.table.weight[self._row(w2c, kf_id)]
-        return self._embed_canonical(self._kept(w2c, kf_id)[1])
+            return (self.table if weights is None else weights).weight[self._row(w2c, kf_id)]
+        return self._embed_canonical(self._kept(w2c, kf_id)[1], weights)
 
     def _kept(self, w2c: torch.Tensor, kf_id: int | None) -> tuple[torch.Tensor, torch.Tensor]:
         """(pose_vector(w2c) [7], embed's input: its canonical_pose [7]), kept per training view
@@ -93,11 +100,11 @@ class AppearanceEncoder(nn.Module):
         """AfME on a pose vector [7] = [t, q wxyz] (canonicalized here) -> [A]."""
         return self._embed_canonical(canonical_pose(pose[:3], pose[3:]))
 
-    def _embed_canonical(self, x: torch.Tensor) -> torch.Tensor:
-        """AfME on a canonicalized pose vector [7] -> [A]."""
+    def _embed_canonical(self, x: torch.Tensor, weights: nn.Module | None = None) -> torch.Tensor:
+        """AfME on a canonicalized pose vector [7] -> [A] (with `weights` in place of self.net)."""
         if self.kind == "mlp":
             x = torch.cat([x[:3] / max(self.scene_extent, 1e-6), x[3:]])
-        return self.net(x)
+        return (self.net if weights is None else weights)(x)
 
     def _row(self, w2c: torch.Tensor, kf_id: int | None) -> int:
         if kf_id is not None and kf_id in self.view_rows:

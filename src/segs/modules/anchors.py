@@ -11,6 +11,7 @@ Per anchor: a fixed position (a buffer, never optimised), a feature f [F], k off
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import torch
 import torch.nn.functional as F
@@ -129,12 +130,12 @@ class AnchorField(nn.Module):
         """[N,3] anchor positions (a buffer row of the store; edit in place)."""
         return self.rows.xyz
 
+    def decoders(self) -> dict[str, nn.Sequential]:
+        """The three decoders by name (the optimizer's group names)."""
+        return {"mlp_opacity": self.mlp_opacity, "mlp_cov": self.mlp_cov, "mlp_color": self.mlp_color}
+
     def decoder_groups(self) -> dict[str, list[nn.Parameter]]:
-        return {
-            "mlp_opacity": list(self.mlp_opacity.parameters()),
-            "mlp_cov": list(self.mlp_cov.parameters()),
-            "mlp_color": list(self.mlp_color.parameters()),
-        }
+        return {name: list(m.parameters()) for name, m in self.decoders().items()}
 
     def add(self, xyz: torch.Tensor, features: torch.Tensor, log_scales: torch.Tensor, kf_tag: torch.Tensor, optimizer) -> int:
         """Append anchors: positions [M,3], features [M,F], log-scales [M,6], source kf ids [M];
@@ -147,13 +148,17 @@ class AnchorField(nn.Module):
         scale = torch.exp(self.rows["log_scales"].detach()[:, :3])
         return self.xyz[:, None, :] + self.rows["offsets"].detach() * scale[:, None, :]
 
-    def decode(self, view: View, embedding: torch.Tensor | None, cull: bool = True) -> tuple[Decoded, DecodeInfo]:
+    def decode(self, view: View, embedding: torch.Tensor | None, cull: bool = True,
+               decoders: Mapping[str, nn.Module] | None = None) -> tuple[Decoded, DecodeInfo]:  # fmt: skip
         """Decode the Gaussians of the anchors inside the view frustum (all anchors if not cull).
 
         embedding: [A] appearance embedding or None. The first layers of the three decoders
         share their input, so they run as one matrix product; the embedding's contribution to
-        the colour decoder is the same for every anchor and enters as a bias.
+        the colour decoder is the same for every anchor and enters as a bias. decoders: modules
+        shaped as `self.decoders()` to decode with instead (the decoder average).
         """
+        mlps = self.decoders() if decoders is None else decoders
+        m_opacity, m_cov, m_color = mlps["mlp_opacity"], mlps["mlp_cov"], mlps["mlp_color"]
         if cull:
             visible = torch.nonzero(self.in_frustum(self.xyz, view, self.frustum_margin)).squeeze(1)
         else:
@@ -161,13 +166,13 @@ class AnchorField(nn.Module):
         # index_select, not t[idx]: its backward is index_add_, several times faster on the CPU
         # than the accumulating index_put_ of advanced indexing (the same sums)
         pick = torch.index_select
-        first = tuple((m[0].weight, m[0].bias) for m in (self.mlp_opacity, self.mlp_cov, self.mlp_color))
+        first = tuple((m[0].weight, m[0].bias) for m in (m_opacity, m_cov, m_color))
         xyz, h_cov, h_col, opacity = self.decode_front(
             self.xyz, pick(self.rows["features"], 0, visible), visible, view.center.to(self.xyz), first,
-            (self.mlp_opacity[2].weight, self.mlp_opacity[2].bias), embedding if self.appearance_dim else None, self.use_distance,
+            (m_opacity[2].weight, m_opacity[2].bias), embedding if self.appearance_dim else None, self.use_distance,
         )  # fmt: skip
         keep = torch.nonzero(opacity.detach().reshape(-1) > 0).squeeze(1)  # rendered slots
-        lin_cov, lin_col = self.mlp_cov[2], self.mlp_color[2]
+        lin_cov, lin_col = m_cov[2], m_color[2]
         decoded = Decoded(*self.assemble(xyz, pick(self.rows["log_scales"], 0, visible), pick(self.rows["offsets"], 0, visible),
                                          h_cov, h_col, opacity, keep, lin_cov.weight, lin_cov.bias, lin_col.weight, lin_col.bias))
         return decoded, DecodeInfo(visible, keep, opacity.detach())

@@ -79,6 +79,7 @@ class SegsConfig:
     frustum_margin: float
     reference_steps: int
     total_steps: int
+    decoder_average: float  # renders outside training decode with the decoders' EMA of this decay (0 = off)
     appearance: AppearanceConfig
     fpr: FprConfig
     loss: SegsLoss
@@ -217,6 +218,7 @@ def _check_segs(cfg: SegsConfig) -> None:
     _check("model.hidden", cfg.hidden > 0, cfg.hidden, "> 0")
     _check("model.voxel_size", cfg.voxel_size > 0, cfg.voxel_size, "> 0 (metres)")
     _check("model.max_anchors", cfg.max_anchors > 0, cfg.max_anchors, "> 0")
+    _check("model.decoder_average", 0 <= cfg.decoder_average < 1, cfg.decoder_average, "a decay in [0, 1) (0 = off)")
     app, fpr = cfg.appearance, cfg.fpr
     _check("model.appearance.kind", app.kind in APPEARANCE_KINDS, app.kind, f"one of {APPEARANCE_KINDS}")
     _check("model.appearance.dim", app.kind == "none" or app.dim > 0, app.dim, "> 0")

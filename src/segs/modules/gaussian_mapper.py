@@ -143,7 +143,8 @@ class GaussianMapperModule(L.LightningModule):
         if w2c is None:
             d = self.model.decode_all(View(first.w2c, first.camera, first.kf_id))
         else:
-            d = self.model.decode(View(torch.as_tensor(w2c, dtype=torch.float32), camera or first.camera), self.model.total_steps)
+            view = View(torch.as_tensor(w2c, dtype=torch.float32), camera or first.camera)
+            d = self.model.decode(view, self.model.total_steps, averaged=True)
         cpu = lambda t: t.detach().to("cpu", torch.float32)  # noqa: E731
         return GaussianCloud(cpu(d.means), cpu(d.quats), cpu(d.scales), cpu(d.opacities), cpu(d.colors))
 
@@ -228,13 +229,15 @@ class GaussianMapperModule(L.LightningModule):
             self._device_K[key] = view.K.to(self.device)
         return self._device_K[key]
 
-    def render(self, view: View, step: int | None = None, check_values: bool = True, eps2d: float = EPS2D):
+    def render(self, view: View, step: int | None = None, check_values: bool = True, eps2d: float = EPS2D,
+               averaged: bool = False):  # fmt: skip
         """Decode and rasterize one view; returns (rasterizer output, Decoded). check_values:
         the rasterizer reads the Gaussians back for non-finite values (on a GPU, a wait); eps2d:
-        the rasterizer's low-pass filter (pixels^2)."""
+        the rasterizer's low-pass filter (pixels^2); averaged: a render outside training (the
+        model's decoder average, SceneModel.decode)."""
         if step is None:
             step = self.global_step if self._trainer is not None else self.restored_step
-        decoded = self.model.decode(view, step)
+        decoded = self.model.decode(view, step, averaged=averaged)
         r = self.raster
         out = rasterize(
             decoded.means, decoded.quats, decoded.scales, decoded.opacities, decoded.colors,
@@ -248,7 +251,7 @@ class GaussianMapperModule(L.LightningModule):
     def render_image(self, w2c: np.ndarray | torch.Tensor, camera, kf_id: int | None = None) -> dict:
         """Render at a pose (evaluation): {"image" [H,W,3], "depth" [H,W], "alpha" [H,W]} on CPU."""
         view = View(torch.as_tensor(w2c, dtype=torch.float32), camera, kf_id)
-        out, _ = self.render(view, eps2d=self.render_eps2d())
+        out, _ = self.render(view, eps2d=self.render_eps2d(), averaged=True)
         return {"image": out.image.clamp(0, 1).cpu(), "depth": out.depth.cpu(), "alpha": out.alpha.cpu()}
 
     def render_eps2d(self) -> float:
@@ -298,6 +301,7 @@ class GaussianMapperModule(L.LightningModule):
         set_learning_rates(opt, self.model.lr_schedules(), step)
         self.optimizers().step()
         opt.zero_grad(set_to_none=True)
+        self.model.after_step()
         edits = self.model.maintain(step + 1, opt)
         self.iteration_ms.append((time.perf_counter() - t0) * 1000.0)
         self._pending_losses.append(terms["total"].detach())
@@ -347,6 +351,7 @@ class GaussianMapperModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         # checkpoints of the layout before the PrimitiveRows store load under the new names
         checkpoint["state_dict"] = upgrade_state_keys(checkpoint["state_dict"], self.model.LEGACY_STATE_KEYS, "model.")
+        checkpoint["state_dict"] = self.model.upgrade_state(checkpoint["state_dict"], "model.")
         sd = {k.removeprefix("model."): v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
         self.model.resize_for_state(sd)
         self.restored_step = int(checkpoint.get("global_step", 0))

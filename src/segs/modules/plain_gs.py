@@ -110,7 +110,8 @@ class PlainGaussians(SceneModel):
     def active_sh_degree(self, step: int) -> int:
         return min(self.sh_degree, step // self._at(self.sh_increase_every))
 
-    def decode(self, view: View, step: int) -> Decoded:
+    def decode(self, view: View, step: int, averaged: bool = False) -> Decoded:
+        """The Gaussians themselves, coloured by their SH (no average is kept: `averaged` is moot)."""
         means = self.gs["means"]
         dirs = F.normalize(means - view.center.to(means), dim=-1)
         sh = torch.cat([self.gs["sh_dc"], self.gs["sh_rest"]], 1)

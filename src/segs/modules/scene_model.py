@@ -126,6 +126,11 @@ class SceneModel(nn.Module, abc.ABC):
     def load_checkpoint_state(self, state: dict[str, torch.Tensor]) -> None:
         """Restore checkpoint_state() (an empty dict: a checkpoint written before it existed)."""
 
+    def upgrade_state(self, state: dict, prefix: str) -> dict:
+        """A checkpoint's state_dict (this model's keys under `prefix`) made loadable into this
+        model, for parts a model keeps or not by its config (default: as it is)."""
+        return state
+
     @abc.abstractmethod
     def param_groups(self) -> list[dict]:
         """Optimizer groups [{"name", "params", "lr"}] (initial learning rates)."""
@@ -135,8 +140,13 @@ class SceneModel(nn.Module, abc.ABC):
         """Group name -> schedule (groups without one keep their initial rate)."""
 
     @abc.abstractmethod
-    def decode(self, view: View, step: int) -> Decoded:
-        """Gaussians to render for this view."""
+    def decode(self, view: View, step: int, averaged: bool = False) -> Decoded:
+        """Gaussians to render for this view. averaged: a render outside training (evaluation,
+        viewer, export), decoded with weights averaged over the latest steps where the model keeps
+        such an average (SEGS: segs.modules.decoder_average), else as in training."""
+
+    def after_step(self) -> None:
+        """After each optimizer step (default: nothing; SEGS: the decoder average's update)."""
 
     @abc.abstractmethod
     def loss(self, render, gt: torch.Tensor, decoded: Decoded, step: int, gt_depth: torch.Tensor | None) -> dict:

@@ -16,6 +16,7 @@ from segs.modules import losses
 from segs.modules.afme import AppearanceEncoder
 from segs.modules.anchors import AnchorField
 from segs.modules.config import SegsConfig
+from segs.modules.decoder_average import DecoderAverage
 from segs.modules.export import rgb_to_sh_dc, write_gaussian_ply
 from segs.modules.fpr import fpr_loss
 from segs.modules.geometry import apply_similarity, split_similarity
@@ -40,6 +41,8 @@ class SegsModel(SceneModel):
         a_dim = 0 if app.kind == "none" else app.dim
         self.field = AnchorField(cfg.k, cfg.feature_dim, cfg.hidden, a_dim, cfg.use_distance, cfg.frustum_margin)
         self.appearance = AppearanceEncoder(app.kind, app.dim, app.hidden, app.max_views)
+        # renders outside training decode with these weights averaged over the latest steps (0: off)
+        self.decoder_average = DecoderAverage(self.decoders(), cfg.decoder_average) if cfg.decoder_average > 0 else None
         self.max_anchors = cfg.max_anchors
         if cfg.budget_mb is not None:
             self.max_anchors = min(cfg.max_anchors, self.anchors_for_budget(cfg.budget_mb))
@@ -48,11 +51,24 @@ class SegsModel(SceneModel):
 
     def anchors_for_budget(self, budget_mb: float) -> int:
         """Largest anchor count whose model (anchors + decoders + embedding) fits in budget_mb."""
-        fixed = sum(p.numel() for p in self.parameters()) - len(self.field) * self.floats_per_anchor()
+        fixed = self.parameter_count() - len(self.field) * self.floats_per_anchor()
         n = int((budget_mb * 1e6 / 4 - fixed) // self.floats_per_anchor())
         if n < 1:
             raise ConfigError(f"model.budget_mb={budget_mb} is smaller than the decoders alone ({fixed * 4 / 1e6:.3f} MB)")
         return n
+
+    def parameter_count(self) -> int:
+        """Floats of the map's parameters (the decoder average's copies, a second set of the
+        decoders' weights that renders use instead of the first, not counted)."""
+        average = set(map(id, self.decoder_average.parameters())) if self.decoder_average is not None else set()
+        return sum(p.numel() for p in self.parameters() if id(p) not in average)
+
+    def decoders(self) -> dict[str, torch.nn.Module]:
+        """The modules the decoder average follows: the three decoders and AfME's encoder."""
+        out = dict(self.field.decoders())
+        if (encoder := self.appearance.weights()) is not None:
+            out["appearance"] = encoder
+        return out
 
     def floats_per_anchor(self) -> int:
         """Stored floats per anchor: position, feature, k offsets, 6 log-scales."""
@@ -144,14 +160,26 @@ class SegsModel(SceneModel):
         dev = self.field.xyz.device
         return view if view.w2c.device == dev else View(view.w2c.to(dev), view.camera, view.kf_id)
 
-    def decode(self, view: View, step: int) -> Decoded:
+    def decode(self, view: View, step: int, averaged: bool = False) -> Decoded:
+        """The anchors in the view's frustum decoded; averaged: with the decoder average's weights."""
         view = self._on_device(view)
         self.appearance.scene_extent = self.scene_extent
-        embedding = self.appearance(view.w2c, view.kf_id)
-        decoded, info = self.field.decode(view, embedding)
+        mlps = self._decoders_for(averaged)
+        embedding = self.appearance(view.w2c, view.kf_id, None if mlps is None else mlps.get("appearance"))
+        decoded, info = self.field.decode(view, embedding, decoders=mlps)
         decoded.aux["info"] = info
         self.last_rendered = len(decoded)
         return decoded
+
+    def _decoders_for(self, averaged: bool) -> dict[str, torch.nn.Module] | None:
+        """The decoder average's modules by name for a render outside training; None: the live ones."""
+        if not averaged or self.decoder_average is None:
+            return None
+        return dict(self.decoder_average.averaged.items())
+
+    def after_step(self) -> None:
+        if self.decoder_average is not None:
+            self.decoder_average.update(self.decoders())
 
     def compile_step_code(self) -> None:
         """The photometric loss (SceneModel) and the anchors' decoding (AnchorField.compile_decoding)."""
@@ -188,12 +216,24 @@ class SegsModel(SceneModel):
     @torch.no_grad()
     def count_active(self, view: View, threshold: float = 0.005) -> int:
         """Gaussians decoded for this view with opacity above threshold."""
-        return int((self.decode(view, self.total_steps).opacities > threshold).sum())
+        return int((self.decode(view, self.total_steps, averaged=True).opacities > threshold).sum())
 
     def counts(self) -> dict[str, float]:
-        n_params = sum(p.numel() for p in self.parameters())
+        n_params = self.parameter_count()
         return {"anchors": len(self.field), "gaussians": len(self.field) * self.field.k, "rendered": self.last_rendered,
                 "params": n_params, "mb": (n_params + self.field.xyz.numel()) * 4 / 1e6}  # fmt: skip
+
+    def upgrade_state(self, state: dict, prefix: str) -> dict:
+        """A checkpoint's state_dict (keys `prefix` + this model's names) made to fit this model's
+        decoder average: written without one (before it existed, or with it off), the average
+        starts as the checkpoint's live weights; written with one this model does not keep, it is
+        dropped."""
+        key = prefix + "decoder_average."
+        if self.decoder_average is None:
+            return {k: v for k, v in state.items() if not k.startswith(key)}
+        names = {id(m): name for name, m in self.named_modules()}
+        sources = {name: f"{prefix}{names[id(m)]}." for name, m in self.decoders().items()}
+        return self.decoder_average.filled_state(state, key, sources)
 
     def resize_for_state(self, state_dict) -> None:
         self.field.rows.resize(state_dict["field.rows.features"].shape[0])
@@ -212,8 +252,9 @@ class SegsModel(SceneModel):
     def decode_all(self, view: View) -> Decoded:
         """Every anchor decoded (no frustum culling) with this view's direction and appearance."""
         view = self._on_device(view)
-        embedding = self.appearance(view.w2c, view.kf_id)
-        return self.field.decode(view, embedding, cull=False)[0]
+        mlps = self._decoders_for(True)
+        embedding = self.appearance(view.w2c, view.kf_id, None if mlps is None else mlps.get("appearance"))
+        return self.field.decode(view, embedding, cull=False, decoders=mlps)[0]
 
     def export_ply(self, path: str | Path, view: View) -> int:
         """The Gaussians of decode_all as degree-0 SH (their colours are decoded, not SH)."""
