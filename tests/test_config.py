@@ -78,7 +78,8 @@ def test_schedule_inputs_that_are_not_integers_are_named(key, value, tmp_path):
 
 
 @pytest.mark.parametrize("override,needle", [("model.voxel_size=-0.01", "model.voxel_size"), ("model.k=0", "model.k"),
-                                             ("model.lr.features=-1", "model.lr.features")])  # fmt: skip
+                                             ("model.lr.features=-1", "model.lr.features"),
+                                             ("model.decoder_average=1.0", "model.decoder_average")])  # fmt: skip
 def test_model_rejects_out_of_range_values(override, needle, tmp_path):
     cfg = compose([override], output_dir=str(tmp_path))
     with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
