@@ -307,3 +307,16 @@ def test_afme_of_a_view_equals_embed_of_its_pose_vector(kind):
     w2c[:3, :3], w2c[:3, 3] = q * torch.sign(torch.det(q)), torch.randn(3)
     assert torch.equal(enc(w2c, 3), enc.embed(pose_vector(w2c)))
     assert torch.equal(enc(w2c, 3), enc.embed(pose_vector(w2c)))  # the kept input
+
+
+def test_no_growth_round_in_the_runs_last_interval():
+    model = build_model(model_node("segs", total_steps=6750, k=2, feature_dim=4, hidden=4))
+    rounds = []
+    model.growth.adjust = lambda *a, **kw: rounds.append(1) or {"grown": 0, "pruned": 0, "anchors": 0}
+    assert model._interval() == 100
+    assert model.maintain(2600, None) != {} and len(rounds) == 1  # no run length known: the schedule's rounds
+    model.run_steps = 2600  # a run stopped inside its 6,750-step schedule
+    assert model.maintain(2500, None) != {} and len(rounds) == 2
+    assert model.maintain(2600, None) == {} and len(rounds) == 2  # its new anchors would never be trained
+    model.run_steps = 2650
+    assert model.maintain(2600, None) == {} and model.maintain(2500, None) != {} and len(rounds) == 3

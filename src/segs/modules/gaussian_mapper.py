@@ -263,8 +263,10 @@ class GaussianMapperModule(L.LightningModule):
 
     # -- training -------------------------------------------------------------------------------
     def on_fit_start(self) -> None:
-        """mapping.compile: the model's per-step tensor code compiled (null: on a CUDA device that
-        torch.compile can build for, else eager with a note in the log; true: an error if it cannot)."""
+        """The model learns the run's length (SceneModel.run_steps); mapping.compile: the model's
+        per-step tensor code compiled (null: on a CUDA device that torch.compile can build for,
+        else eager with a note in the log; true: an error if it cannot)."""
+        self.model.run_steps = self.trainer.max_steps if self.trainer.max_steps > 0 else None
         if self.compiled or self.compile_mode is False:
             return
         if self.compile_mode is None and self.device.type != "cuda":

@@ -90,6 +90,9 @@ class SceneModel(nn.Module, abc.ABC):
     # the schedules' length in steps (model.total_steps): learning rates, densification windows,
     # and the mapper's coarse-to-fine phases
     total_steps: int
+    # the steps of the current run (trainer.max_steps; set by the mapper as fit starts), which may
+    # end inside the schedule (a coarse-to-fine run shorter than mapping.min_schedule_steps)
+    run_steps: int | None = None
     # whether loss() reads the keyframes' depth; without it the mapper keeps no depth image
     uses_depth: bool = False
     # whether the Gaussians are decoded per view (opacity, shape, colour from the direction to the

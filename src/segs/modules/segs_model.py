@@ -210,6 +210,8 @@ class SegsModel(SceneModel):
         interval = self._interval()
         if not (self._at(self.growth.grow_from) < step < self._at(self.growth.until)) or step % interval:
             return {}
+        if self.run_steps is not None and step > self.run_steps - interval:
+            return {}  # the run ends before the anchors of this round could be trained: no round in its last interval
         return self.growth.adjust(self.field, optimizer, interval, self.voxel_size, self.max_anchors)
 
     # -- bookkeeping ----------------------------------------------------------------------------
