@@ -8,10 +8,11 @@ One run of the dataset's experiment as bench/peers.py runs it (every frame fed b
 step, `trainer.max_steps` = the coarse-to-fine schedule's floor, mapping.min_schedule_steps), the
 run's own `model.decoder_average` set to 0: beside it this script keeps an average per
 --decays value (segs.modules.decoder_average.DecoderAverage, updated after every step as the
-model updates its own) and at each --steps step scores the test views (segs.evaluation's
-render_test_views, as the evaluation does) with the live weights and with each average in place
+model updates its own) and at each --steps step scores the test views' PSNR and SSIM
+(segs.evaluation's render_test_views, as the evaluation does) with the live weights and with each average in place
 of them. The training is the same for every column. Prints one row per step and the mean over
-the steps; JSON in outputs/bench/decoder_average_<dataset>.json.
+the steps (each scoring's per-view CSV in a temporary folder it names); JSON in
+outputs/bench/decoder_average_<dataset>.json.
 """
 from __future__ import annotations
 
@@ -55,17 +56,22 @@ class Scorer(L.Callback):
             avg.update(live)
         step = int(trainer.global_step)
         if step in self.steps:
-            row = {"step": step, "live": self.score(pl_module)}
+            row = {"step": step, **self._scored("live", pl_module)}
             kept = {n: [p.detach().clone() for p in m.parameters()] for n, m in live.items()}
             with torch.no_grad():
                 for d, avg in self.averages.items():
                     self._put(live, {n: list(m.parameters()) for n, m in avg.averaged.items()})
-                    row[str(d)] = self.score(pl_module)
+                    row.update(self._scored(str(d), pl_module))
                 self._put(live, kept)
             self.rows.append(row)
-            print("decoder_average: " + json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
+            print("decoder_average: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
         if step >= self.steps[-1]:
             trainer.should_stop = True
+
+    def _scored(self, column: str, pl_module) -> dict:
+        """{column: test PSNR, column + " ssim": test SSIM} with the weights now in place."""
+        psnr, ssim = self.score(pl_module)
+        return {column: psnr, f"{column} ssim": ssim}
 
     @staticmethod
     def _put(live: dict, weights: dict) -> None:
@@ -78,12 +84,13 @@ def run(dataset: str, steps: list[int], decays: list[float]) -> dict:
     import time_to_quality as ttq
 
     out = Path(tempfile.mkdtemp(prefix="decoder_average_"))
+    print(f"decoder_average: per-view PSNR of each scoring in {out}/eval_NNN/test_views.csv", flush=True)
     floor = 6750
     scorer = Scorer(steps, decays, None)
     overrides = DATASETS[dataset] + ["seed=0", "model.decoder_average=0"]
     cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, max(floor, max(steps)), out / "run", [scorer])
     score = ttq.view_scorer(sequence, bridge, out)
-    scorer.score = lambda m: float(score(m)["psnr"])
+    scorer.score = lambda m: (lambda r: (float(r["psnr"]), float(r["ssim"])))(score(m))
     _harness.fit(cfg, module, trainer)
     columns = ["live"] + [str(d) for d in decays]
     mean = {c: float(np.mean([r[c] for r in scorer.rows])) for c in columns}

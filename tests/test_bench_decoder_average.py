@@ -23,7 +23,7 @@ def test_each_column_scores_its_weights_and_the_live_weights_are_restored():
     bench = _bench()
     lin = nn.Linear(1, 1, bias=False)
     module = SimpleNamespace(model=SimpleNamespace(decoders=lambda: {"lin": lin}))
-    score = lambda m: float(m.model.decoders()["lin"].weight.detach())  # noqa: E731
+    score = lambda m: (float(m.model.decoders()["lin"].weight.detach()), 0.5)  # noqa: E731
     scorer = bench.Scorer([2, 3], [0.5], score)
     trainer = SimpleNamespace(global_step=0, should_stop=False)
     for step, w in enumerate([4.0, 8.0, 0.0], start=1):
@@ -32,5 +32,6 @@ def test_each_column_scores_its_weights_and_the_live_weights_are_restored():
         trainer.global_step = step
         scorer.on_train_batch_end(trainer, module, None, None, step - 1)
     # the average starts at the weights after step 1 (4), then 0.5 / 0.5 with 8, then with 0
-    assert scorer.rows == [{"step": 2, "live": 8.0, "0.5": 6.0}, {"step": 3, "live": 0.0, "0.5": 3.0}]
+    assert scorer.rows == [{"step": 2, "live": 8.0, "live ssim": 0.5, "0.5": 6.0, "0.5 ssim": 0.5},
+                           {"step": 3, "live": 0.0, "live ssim": 0.5, "0.5": 3.0, "0.5 ssim": 0.5}]  # fmt: skip
     assert float(lin.weight.detach()) == 0.0 and trainer.should_stop
