@@ -30,7 +30,7 @@ class SegsModel(SceneModel):
 
     decodes_per_view = True  # Scaffold-GS decoding (anchors.py): the PLY is fitted (modules/bake.py)
     LEGACY_STATE_KEYS = {"field.params.params.": "field.rows.", "field.xyz": "field.rows.xyz", "densifier.": "field.rows.",
-                         "kf_tags": "field.rows.kf_tag"}  # fmt: skip
+                         "kf_tags": "field.rows.kf_tag", "decoder_average.average.module.": "decoder_average.averaged."}  # fmt: skip
 
     def __init__(self, cfg: SegsConfig):
         super().__init__()
@@ -162,20 +162,19 @@ class SegsModel(SceneModel):
 
     def decode(self, view: View, step: int, averaged: bool = False) -> Decoded:
         """The anchors in the view's frustum decoded; averaged: with the decoder average's weights."""
-        view = self._on_device(view)
-        self.appearance.scene_extent = self.scene_extent
-        mlps = self._decoders_for(averaged)
-        embedding = self.appearance(view.w2c, view.kf_id, None if mlps is None else mlps.get("appearance"))
-        decoded, info = self.field.decode(view, embedding, decoders=mlps)
+        decoded, info = self._decode_field(view, averaged, cull=True)
         decoded.aux["info"] = info
         self.last_rendered = len(decoded)
         return decoded
 
-    def _decoders_for(self, averaged: bool) -> dict[str, torch.nn.Module] | None:
-        """The decoder average's modules by name for a render outside training; None: the live ones."""
-        if not averaged or self.decoder_average is None:
-            return None
-        return dict(self.decoder_average.averaged.items())
+    def _decode_field(self, view: View, averaged: bool, cull: bool):
+        """(Decoded, DecodeInfo) of the anchor field for the view (on the model's device), with the
+        decoder average's weights where `averaged` and the model keeps one, else the live ones."""
+        view = self._on_device(view)
+        self.appearance.scene_extent = self.scene_extent
+        mlps = dict(self.decoder_average.averaged.items()) if averaged and self.decoder_average is not None else None
+        embedding = self.appearance(view.w2c, view.kf_id, None if mlps is None else mlps.get("appearance"))
+        return self.field.decode(view, embedding, cull=cull, decoders=mlps)
 
     def after_step(self) -> None:
         if self.decoder_average is not None:
@@ -231,6 +230,7 @@ class SegsModel(SceneModel):
         starts as the checkpoint's live weights; written with one this model does not keep, it is
         dropped."""
         key = prefix + "decoder_average."
+        state = {k: v for k, v in state.items() if k != key + "average.n_averaged"}  # f082e55's layout kept a count
         if self.decoder_average is None:
             return {k: v for k, v in state.items() if not k.startswith(key)}
         names = {id(m): name for name, m in self.named_modules()}
@@ -253,10 +253,7 @@ class SegsModel(SceneModel):
     @torch.no_grad()
     def decode_all(self, view: View) -> Decoded:
         """Every anchor decoded (no frustum culling) with this view's direction and appearance."""
-        view = self._on_device(view)
-        mlps = self._decoders_for(True)
-        embedding = self.appearance(view.w2c, view.kf_id, None if mlps is None else mlps.get("appearance"))
-        return self.field.decode(view, embedding, cull=False, decoders=mlps)[0]
+        return self._decode_field(view, averaged=True, cull=False)[0]
 
     def export_ply(self, path: str | Path, view: View) -> int:
         """The Gaussians of decode_all as degree-0 SH (their colours are decoded, not SH)."""
