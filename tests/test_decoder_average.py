@@ -117,17 +117,3 @@ def test_a_checkpoint_with_the_average_restores_it():
     view = _view(0)
     assert torch.equal(again.decode(view, 10, averaged=True).colors, model.decode(view, 10, averaged=True).colors)
 
-
-def test_a_checkpoint_of_the_first_layout_of_the_average_loads():
-    from segs.modules.scene_model import upgrade_state_keys
-
-    model = _model(0.9)
-    _train_steps(model, 3)
-    first = {("model." + k).replace("decoder_average.averaged.", "decoder_average.average.module."): v
-             for k, v in model.state_dict().items()}  # fmt: skip
-    first["model.decoder_average.average.n_averaged"] = torch.tensor(4)
-    again = _model(0.9)
-    state = again.upgrade_state(upgrade_state_keys(first, again.LEGACY_STATE_KEYS, "model."), "model.")
-    again.load_state_dict({k.removeprefix("model."): v for k, v in state.items()})
-    view = _view(0)
-    assert torch.equal(again.decode(view, 10, averaged=True).colors, model.decode(view, 10, averaged=True).colors)

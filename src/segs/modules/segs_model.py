@@ -30,7 +30,7 @@ class SegsModel(SceneModel):
 
     decodes_per_view = True  # Scaffold-GS decoding (anchors.py): the PLY is fitted (modules/bake.py)
     LEGACY_STATE_KEYS = {"field.params.params.": "field.rows.", "field.xyz": "field.rows.xyz", "densifier.": "field.rows.",
-                         "kf_tags": "field.rows.kf_tag", "decoder_average.average.module.": "decoder_average.averaged."}  # fmt: skip
+                         "kf_tags": "field.rows.kf_tag"}  # fmt: skip
 
     def __init__(self, cfg: SegsConfig):
         super().__init__()
@@ -230,7 +230,6 @@ class SegsModel(SceneModel):
         starts as the checkpoint's live weights; written with one this model does not keep, it is
         dropped."""
         key = prefix + "decoder_average."
-        state = {k: v for k, v in state.items() if k != key + "average.n_averaged"}  # f082e55's layout kept a count
         if self.decoder_average is None:
             return {k: v for k, v in state.items() if not k.startswith(key)}
         names = {id(m): name for name, m in self.named_modules()}
