@@ -1,5 +1,6 @@
-"""bench/decoder_average.py: each column scores the test views with its own weights in place, and
-the live weights are back after each scoring (logic only, with a stand-in model and scorer)."""
+"""bench/decoder_average.py and bench/render_filter.py: each column scores the test views with its
+own weights (or render filter) in place, and what the run uses is back after each scoring (logic
+only, with stand-ins for the model and the scorer)."""
 from __future__ import annotations
 
 import importlib
@@ -35,3 +36,15 @@ def test_each_column_scores_its_weights_and_the_live_weights_are_restored():
     assert scorer.rows == [{"step": 2, "live": 8.0, "live ssim": 0.5, "0.5": 6.0, "0.5 ssim": 0.5},
                            {"step": 3, "live": 0.0, "live ssim": 0.5, "0.5": 3.0, "0.5 ssim": 0.5}]  # fmt: skip
     assert float(lin.weight.detach()) == 0.0 and trainer.should_stop
+
+
+def test_the_render_filter_bench_scores_each_factor_and_puts_the_trained_one_back():
+    if str(ROOT / "bench") not in sys.path:
+        sys.path.insert(0, str(ROOT / "bench"))
+    bench = importlib.import_module("render_filter")
+    module = SimpleNamespace(trained_factor=2)
+    scorer = bench.Scorer([5], [4, 1], lambda m: (float(m.trained_factor), 0.9))
+    trainer = SimpleNamespace(global_step=5, should_stop=False)
+    scorer.on_train_batch_end(trainer, module, None, None, 4)
+    assert scorer.rows == [{"step": 5, "trained": 2, "f4": 4.0, "f4 ssim": 0.9, "f1": 1.0, "f1 ssim": 0.9}]
+    assert module.trained_factor == 2 and trainer.should_stop

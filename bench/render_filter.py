@@ -1,0 +1,72 @@
+"""The render filter after a coarse-to-fine switch (docs/decisions/035-render-filter-of-the-trained-pixels.md):
+test-view PSNR / SSIM at chosen steps of one run, rendered through the low-pass filter of each
+training pixel size.
+
+    python bench/render_filter.py --steps 2000 2025 2027 2030 2035 2040 2050 2075 2100 2150 2200
+
+One run of the sample as bench/peers.py runs it (every frame fed before the first step, the
+6,750-step schedule of the coarse-to-fine default: 1/4 size to step 2,025, 1/2 to 4,050); at each
+--steps step the test views are scored (segs.evaluation's render_test_views) through the filter
+of each --factors pixel size, 0.3 px^2 x factor^2 (`mapping.render_filter: trained` draws with
+the factor of the latest training step). The training is the same for every column. Prints one
+row per step; JSON in outputs/bench/render_filter.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import _harness
+
+_harness.apply_process_settings()  # before torch loads
+
+import lightning as L  # noqa: E402
+
+
+class Scorer(L.Callback):
+    """At `steps`: the test views scored with the module's trained_factor set to each of
+    `factors` (then put back); rows {"step", "trained": the factor the run would draw with,
+    "f<k>", "f<k> ssim"}."""
+
+    def __init__(self, steps: list[int], factors: list[int], score):
+        self.steps, self.factors, self.score = sorted(steps), factors, score
+        self.rows: list[dict] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        step = int(trainer.global_step)
+        if step in self.steps:
+            kept = pl_module.trained_factor
+            row = {"step": step, "trained": kept}
+            for f in self.factors:
+                pl_module.trained_factor = f
+                row[f"f{f}"], row[f"f{f} ssim"] = self.score(pl_module)
+            pl_module.trained_factor = kept
+            self.rows.append(row)
+            print("render_filter: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
+        if step >= self.steps[-1]:
+            trainer.should_stop = True
+
+
+def main() -> None:
+    import time_to_quality as ttq
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--steps", type=int, nargs="+", required=True)
+    ap.add_argument("--factors", type=int, nargs="+", default=[4, 2, 1])
+    ap.add_argument("--out", default=str(_harness.ROOT / "outputs" / "bench" / "render_filter.json"))
+    args = ap.parse_args()
+    out = Path(tempfile.mkdtemp(prefix="render_filter_"))
+    scorer = Scorer(args.steps, args.factors, None)
+    overrides = ["+experiment=sample", "seed=0"]
+    cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, max(6750, max(args.steps)), out / "run", [scorer])
+    score = ttq.view_scorer(sequence, bridge, out)
+    scorer.score = lambda m: (lambda r: (float(r["psnr"]), float(r["ssim"])))(score(m))
+    _harness.fit(cfg, module, trainer)
+    path = _harness.write_json(args.out, {**_harness.record(), "overrides": overrides, "rows": scorer.rows})
+    print(f"render_filter: {path}")
+
+
+if __name__ == "__main__":
+    main()
