@@ -85,13 +85,9 @@ def run(dataset: str, steps: list[int], decays: list[float]) -> dict:
 
     out = Path(tempfile.mkdtemp(prefix="decoder_average_"))
     print(f"decoder_average: per-view PSNR of each scoring in {out}/eval_NNN/test_views.csv", flush=True)
-    floor = 6750
     scorer = Scorer(steps, decays, None)
     overrides = DATASETS[dataset] + ["seed=0", "model.decoder_average=0"]
-    cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, max(floor, max(steps)), out / "run", [scorer])
-    score = ttq.view_scorer(sequence, bridge, out)
-    scorer.score = lambda m: (lambda r: (float(r["psnr"]), float(r["ssim"])))(score(m))
-    _harness.fit(cfg, module, trainer)
+    ttq.run_scored_at_steps(overrides, max(steps), scorer, out)
     columns = ["live"] + [str(d) for d in decays]
     mean = {c: float(np.mean([r[c] for r in scorer.rows])) for c in columns}
     print("decoder_average: mean over the steps " + json.dumps({c: round(v, 3) for c, v in mean.items()}), flush=True)

@@ -60,10 +60,7 @@ def main() -> None:
     out = Path(tempfile.mkdtemp(prefix="render_filter_"))
     scorer = Scorer(args.steps, args.factors, None)
     overrides = ["+experiment=sample", "seed=0"]
-    cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, max(6750, max(args.steps)), out / "run", [scorer])
-    score = ttq.view_scorer(sequence, bridge, out)
-    scorer.score = lambda m: (lambda r: (float(r["psnr"]), float(r["ssim"])))(score(m))
-    _harness.fit(cfg, module, trainer)
+    ttq.run_scored_at_steps(overrides, max(args.steps), scorer, out)
     path = _harness.write_json(args.out, {**_harness.record(), "overrides": overrides, "rows": scorer.rows})
     print(f"render_filter: {path}")
 

@@ -171,6 +171,20 @@ def view_scorer(sequence, bridge, out: Path) -> Callable[[L.LightningModule], di
     return score
 
 
+def run_scored_at_steps(overrides: list[str], last_step: int, scorer: L.Callback, out: Path) -> None:
+    """One run of `overrides` as bench/peers.py runs segs (every frame fed first, QUIET), its
+    trainer.max_steps the schedules' floor (mapping.min_schedule_steps) or `last_step` if more, so
+    that it trains the schedule the budget-stopped runs train; `scorer` (a callback that stops
+    the run at `last_step`) gets `score`: module -> (test PSNR, test SSIM) (view_scorer's)."""
+    from segs.config import compose
+
+    floor = int(compose(overrides, output_dir=str(out)).mapping.min_schedule_steps)
+    cfg, sequence, module, bridge, trainer = _harness.build_training(overrides, max(floor, last_step), out / "run", [scorer])
+    score = view_scorer(sequence, bridge, out)
+    scorer.score = lambda m: (lambda r: (float(r["psnr"]), float(r["ssim"])))(score(m))
+    _harness.fit(cfg, module, trainer)
+
+
 def run_curve(overrides: list[str], budget: float, marks: list[float], out: Path, max_steps: int | None = None,
               warmup_s: float = WARMUP_S, wrap_score: Callable | None = None) -> dict:  # fmt: skip
     """One curve: train for `budget` training seconds, scoring the test views at `marks`.
