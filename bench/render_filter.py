@@ -37,12 +37,13 @@ class Scorer(L.Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = int(trainer.global_step)
         if step in self.steps:
-            kept = pl_module.trained_factor
-            row = {"step": step, "trained": kept}
+            kept = pl_module.trained_factor, getattr(pl_module, "trained_area", None)
+            row = {"step": step, "trained": kept[0]}
+            row["drawn"], row["drawn ssim"] = self.score(pl_module)  # the run's own filter
             for f in self.factors:
-                pl_module.trained_factor = f
+                pl_module.trained_factor, pl_module.trained_area = f, None
                 row[f"f{f}"], row[f"f{f} ssim"] = self.score(pl_module)
-            pl_module.trained_factor = kept
+            pl_module.trained_factor, pl_module.trained_area = kept
             self.rows.append(row)
             print("render_filter: " + json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
         if step >= self.steps[-1]:

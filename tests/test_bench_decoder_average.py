@@ -42,9 +42,10 @@ def test_the_render_filter_bench_scores_each_factor_and_puts_the_trained_one_bac
     if str(ROOT / "bench") not in sys.path:
         sys.path.insert(0, str(ROOT / "bench"))
     bench = importlib.import_module("render_filter")
-    module = SimpleNamespace(trained_factor=2)
-    scorer = bench.Scorer([5], [4, 1], lambda m: (float(m.trained_factor), 0.9))
+    module = SimpleNamespace(trained_factor=2, trained_area=9.0)
+    scorer = bench.Scorer([5], [4, 1], lambda m: (float(m.trained_factor if m.trained_area is None else m.trained_area), 0.9))
     trainer = SimpleNamespace(global_step=5, should_stop=False)
     scorer.on_train_batch_end(trainer, module, None, None, 4)
-    assert scorer.rows == [{"step": 5, "trained": 2, "f4": 4.0, "f4 ssim": 0.9, "f1": 1.0, "f1 ssim": 0.9}]
-    assert module.trained_factor == 2 and trainer.should_stop
+    assert scorer.rows == [{"step": 5, "trained": 2, "drawn": 9.0, "drawn ssim": 0.9, "f4": 4.0, "f4 ssim": 0.9, "f1": 1.0,
+                            "f1 ssim": 0.9}]  # fmt: skip
+    assert (module.trained_factor, module.trained_area) == (2, 9.0) and trainer.should_stop

@@ -115,7 +115,7 @@ def test_the_segs_models_waiting_points_are_saved():
     from segs.modules.gaussian_mapper import GaussianMapperModule
 
     mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
-                              "min_schedule_steps": 0, "render_filter": "trained", "compile": False})
+                              "min_schedule_steps": 0, "render_filter": "trained", "render_filter_decay": 0.95, "compile": False})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     make = lambda: GaussianMapperModule(build_model(model_node("segs", min_new_points=50)), mapping, raster, seed=0)  # noqa: E731
     torch.manual_seed(0)

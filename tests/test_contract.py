@@ -111,7 +111,7 @@ def _mapper_module() -> GaussianMapperModule:
     """A tiny SEGS mapper on the torch rasterizer."""
     node = model_node("segs", k=2, feature_dim=4, hidden=4)
     mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
-                              "min_schedule_steps": 0, "render_filter": "trained", "compile": False})
+                              "min_schedule_steps": 0, "render_filter": "trained", "render_filter_decay": 0.95, "compile": False})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     return GaussianMapperModule(build_model(node), mapping, raster, seed=0)
 
@@ -163,7 +163,7 @@ def _old_layout(state: dict, renames: dict[str, str]) -> dict:
 @pytest.mark.parametrize("name", ["segs", "plain_3dgs"])
 def test_checkpoints_of_the_old_row_layout_load(name):
     mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
-                              "min_schedule_steps": 0, "render_filter": "trained", "compile": False})
+                              "min_schedule_steps": 0, "render_filter": "trained", "render_filter_decay": 0.95, "compile": False})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     extra = {"min_new_points": 1} if name == "segs" else {}
     make = lambda: GaussianMapperModule(build_model(model_node(name, **extra)), mapping, raster, seed=0)  # noqa: E731
@@ -201,7 +201,7 @@ def test_the_bridge_keeps_fed_frames_compact_and_depth_only_for_a_mapper_that_re
 def test_the_mapper_keeps_a_views_depth_only_when_its_loss_reads_it(model, lambda_depth):
     node = model_node(model, **({"lambda_depth": lambda_depth} if lambda_depth is not None else {}))
     mapping = mapping_config({"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "num_downscales": 0, "downscale_phase": 0.1,
-                              "min_schedule_steps": 0, "render_filter": "trained", "compile": False})
+                              "min_schedule_steps": 0, "render_filter": "trained", "render_filter_decay": 0.95, "compile": False})
     raster = raster_config({"backend": "torch", "near": 0.01, "far": 100.0, "background": [0, 0, 0]})
     module = GaussianMapperModule(build_model(node), mapping, raster, seed=0)
     view = TrainingView(kf_id=0, frame_index=0, timestamp=0.0, image=torch.zeros(24, 32, 3, dtype=torch.uint8),

@@ -70,7 +70,7 @@ def test_a_coarse_render_matches_the_block_mean_of_the_full_render():
 
 def test_bad_schedule_values_are_config_errors():
     base = {"view_budget": 2, "min_scene_extent": 0.5, "adam_eps": 1e-15, "min_schedule_steps": 0, "render_filter": "trained",
-            "compile": False}
+            "render_filter_decay": 0.95, "compile": False}
     with pytest.raises(ConfigError, match="mapping.num_downscales"):
         mapping_config({**base, "num_downscales": -1, "downscale_phase": 0.1})
     with pytest.raises(ConfigError, match="mapping.downscale_phase"):
@@ -158,4 +158,8 @@ def test_the_trained_factor_is_the_last_steps_and_sets_the_evaluation_filter(tin
     t.module.render = lambda view, step=None, **kw: seen.append(kw.get("eps2d")) or render(view, step, **kw)
     kf = t.module.views.sample()
     t.module.render_image(kf.w2c, kf.camera)
-    assert seen == [pytest.approx(1.2)]
+    area = None  # the pixel area of the steps, averaged with mapping.render_filter_decay (0.95)
+    for step in range(40):
+        f2 = t.module.resolution_factor(step) ** 2
+        area = float(f2) if area is None else 0.95 * area + 0.05 * f2
+    assert 1.2 < 0.3 * area < 0.3 * 16 and seen == [pytest.approx(0.3 * area)]

@@ -126,7 +126,8 @@ class MappingConfig:
     num_downscales: int  # coarse-to-fine: first steps at 1/2^n of the image size (0 = off)
     downscale_phase: float  # fraction of the schedule each coarser level lasts
     min_schedule_steps: int  # coarse-to-fine: schedules sized for at least this many steps (0 = the run's)
-    render_filter: str  # low-pass of renders at full size: "trained" (as the last training step's pixels) or "fixed" (0.3 px^2)
+    render_filter: str  # low-pass of renders at full size: "trained" (as the latest training steps' pixels) or "fixed" (0.3 px^2)
+    render_filter_decay: float  # "trained": the pixel area averaged over the latest steps with this decay per step
     compile: bool | None  # torch.compile the model's per-step tensor code (SceneModel.compile_step_code); None: on a CUDA device
 
 
@@ -194,6 +195,7 @@ def mapping_config(node) -> MappingConfig:
            cfg.downscale_phase, "a fraction > 0 with num_downscales * downscale_phase <= 1")  # fmt: skip
     _check("config key mapping.min_schedule_steps", cfg.min_schedule_steps >= 0, cfg.min_schedule_steps, "an integer >= 0")
     _check("config key mapping.render_filter", cfg.render_filter in RENDER_FILTERS, cfg.render_filter, f"one of {RENDER_FILTERS}")
+    _check("config key mapping.render_filter_decay", 0 <= cfg.render_filter_decay < 1, cfg.render_filter_decay, "a decay in [0, 1)")
     return cfg
 
 

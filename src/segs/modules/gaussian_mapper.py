@@ -71,7 +71,11 @@ class GaussianMapperModule(L.LightningModule):
         self.adam_eps = mapping.adam_eps
         self.num_downscales, self.downscale_phase = mapping.num_downscales, mapping.downscale_phase
         self.render_filter = mapping.render_filter
-        self.trained_factor = 1  # the image size divisor of the latest training step (render_image's filter)
+        self.trained_factor = 1  # the image size divisor of the latest training step
+        # its pixel area (factor^2) averaged over the latest steps, mapping.render_filter_decay per
+        # step (render_image's filter; None before the first step: trained_factor's)
+        self.trained_area: float | None = None
+        self.render_filter_decay = mapping.render_filter_decay
         self.compile_mode = mapping.compile  # None: on a CUDA device (on_fit_start)
         self.compiled = False
         self.iteration_ms: list[float] = []
@@ -259,7 +263,9 @@ class GaussianMapperModule(L.LightningModule):
         "trained", 3D-GS's filter at the pixel size the map was last trained at, EPS2D * factor^2
         (a map fitted at 1/2 size, through 0.3 px^2 of its pixels, is seen through 1.2 px^2 of
         full-size ones); with "fixed", EPS2D."""
-        return EPS2D * self.trained_factor**2 if self.render_filter == "trained" else EPS2D
+        if self.render_filter != "trained":
+            return EPS2D
+        return EPS2D * (self.trained_factor**2 if self.trained_area is None else self.trained_area)
 
     # -- training -------------------------------------------------------------------------------
     def on_fit_start(self) -> None:
@@ -292,6 +298,8 @@ class GaussianMapperModule(L.LightningModule):
         step = self.global_step
         kf = self._on_device(self.views.sample())  # image, depth and pose already on the device
         factor = self.trained_factor = self.resolution_factor(step)
+        d = self.render_filter_decay if self.trained_area is not None else 0.0
+        self.trained_area = d * self.trained_area + (1.0 - d) * factor**2 if d else float(factor**2)
         view = View(kf.w2c, coarse_camera(kf.camera, factor), kf.kf_id)
         gt = coarse_image(kf.rgb(), factor)
         out, decoded = self.render(view, step, check_values=step % LOSS_READ == 0)  # and the losses: _read_losses
@@ -346,6 +354,7 @@ class GaussianMapperModule(L.LightningModule):
             "store": self.views.state_dict(),
             "scene_extent": self.model.scene_extent,
             "trained_factor": self.trained_factor,
+            "trained_area": self.trained_area,
             "model": self.model.checkpoint_state(),  # e.g. SEGS's points waiting for min_new_points
             "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
         }
@@ -362,6 +371,7 @@ class GaussianMapperModule(L.LightningModule):
             self.views.load_state_dict(extra["store"])
         self.model.scene_extent = extra.get("scene_extent", self.model.scene_extent)
         self.trained_factor = int(extra.get("trained_factor", 1))  # checkpoints before it: full size
+        self.trained_area = extra.get("trained_area")  # checkpoints before it: trained_factor's area
         self.model.load_checkpoint_state(extra.get("model", {}))
         if "rng" in extra:
             torch.set_rng_state(extra["rng"]["torch"])
