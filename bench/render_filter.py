@@ -3,13 +3,16 @@ test-view PSNR / SSIM at chosen steps of one run, rendered through the low-pass 
 training pixel size.
 
     python bench/render_filter.py --steps 2000 2025 2027 2030 2035 2040 2050 2075 2100 2150 2200
+    python bench/render_filter.py --dataset 7scenes --steps 2025 2030 2050 2100
 
-One run of the sample as bench/peers.py runs it (every frame fed before the first step, the
-6,750-step schedule of the coarse-to-fine default: 1/4 size to step 2,025, 1/2 to 4,050); at each
---steps step the test views are scored (segs.evaluation's render_test_views) through the filter
-of each --factors pixel size, 0.3 px^2 x factor^2 (`mapping.render_filter: trained` draws with
-the factor of the latest training step). The training is the same for every column. Prints one
-row per step; JSON in outputs/bench/render_filter.json.
+One run of the dataset's experiment as bench/peers.py runs it (every frame fed before the first
+step, the 6,750-step schedule of the coarse-to-fine defaults: 1/4 size to step 2,025, 1/2 to
+4,050; the datasets of bench/decoder_average.py); at each --steps step the test views are scored
+(segs.evaluation's render_test_views) through the run's own filter ("drawn":
+`mapping.render_filter: trained`, 0.3 px^2 x the training's pixel area averaged with
+mapping.render_filter_decay) and through the filter of each --factors pixel size, 0.3 px^2 x
+factor^2. The training is the same for every column. Prints one row per step; JSON in
+outputs/bench/render_filter_<dataset>.json.
 """
 from __future__ import annotations
 
@@ -26,9 +29,9 @@ import lightning as L  # noqa: E402
 
 
 class Scorer(L.Callback):
-    """At `steps`: the test views scored with the module's trained_factor set to each of
-    `factors` (then put back); rows {"step", "trained": the factor the run would draw with,
-    "f<k>", "f<k> ssim"}."""
+    """At `steps`: the test views scored as the run draws them and with the module's filter set to
+    each of `factors` (then put back); rows {"step", "trained": the latest step's factor, "drawn",
+    "drawn ssim", "f<k>", "f<k> ssim"}."""
 
     def __init__(self, steps: list[int], factors: list[int], score):
         self.steps, self.factors, self.score = sorted(steps), factors, score
@@ -37,7 +40,7 @@ class Scorer(L.Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = int(trainer.global_step)
         if step in self.steps:
-            kept = pl_module.trained_factor, getattr(pl_module, "trained_area", None)
+            kept = pl_module.trained_factor, pl_module.trained_area
             row = {"step": step, "trained": kept[0]}
             row["drawn"], row["drawn ssim"] = self.score(pl_module)  # the run's own filter
             for f in self.factors:
@@ -52,17 +55,20 @@ class Scorer(L.Callback):
 
 def main() -> None:
     import time_to_quality as ttq
+    from decoder_average import DATASETS
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dataset", choices=sorted(DATASETS), default="sample")
     ap.add_argument("--steps", type=int, nargs="+", required=True)
     ap.add_argument("--factors", type=int, nargs="+", default=[4, 2, 1])
-    ap.add_argument("--out", default=str(_harness.ROOT / "outputs" / "bench" / "render_filter.json"))
+    ap.add_argument("--out", default=None)
     args = ap.parse_args()
     out = Path(tempfile.mkdtemp(prefix="render_filter_"))
     scorer = Scorer(args.steps, args.factors, None)
-    overrides = ["+experiment=sample", "seed=0"]
+    overrides = DATASETS[args.dataset] + ["seed=0"]
     ttq.run_scored_at_steps(overrides, max(args.steps), scorer, out)
-    path = _harness.write_json(args.out, {**_harness.record(), "overrides": overrides, "rows": scorer.rows})
+    record = {**_harness.record(), "dataset": args.dataset, "overrides": overrides, "rows": scorer.rows}
+    path = _harness.write_json(args.out or _harness.ROOT / "outputs" / "bench" / f"render_filter_{args.dataset}.json", record)
     print(f"render_filter: {path}")
 
 

@@ -124,10 +124,11 @@ def test_training_runs_coarse_first_then_at_full_size(tiny_cfg):
     assert seen[:10] == [(24, 18)] * 10 and seen[10:20] == [(48, 36)] * 10 and seen[20:] == [(96, 72)] * 20
 
 
-@pytest.mark.parametrize("render_filter,eps2d", [("trained", 0.3 * 2**2), ("fixed", 0.3)])
-def test_renders_outside_training_see_the_pixels_the_map_was_trained_at(tiny_cfg, render_filter, eps2d):
+@pytest.mark.parametrize("render_filter,eps2d,lagged", [("trained", 0.3 * 2**2, 0.3 * 9.0), ("fixed", 0.3, 0.3)])
+def test_renders_outside_training_see_the_pixels_the_map_was_trained_at(tiny_cfg, render_filter, eps2d, lagged):
     """A run stopped in its 1/2-size phase renders at full size through 3D-GS's 0.3 px^2 filter of
-    those pixels (0.3 * 2^2 full-size px^2) with render_filter=trained; its checkpoint keeps the factor."""
+    those pixels (0.3 * 2^2 full-size px^2) with render_filter=trained; its checkpoint keeps the
+    factor and the averaged pixel area (decision 041), which sets the filter where it is kept."""
     cfg = tiny_cfg("trainer.max_steps=40", "mapping.num_downscales=2", "mapping.downscale_phase=0.25", "mapping.min_schedule_steps=80",
                    f"mapping.render_filter={render_filter}", "eval.enabled=false")  # fmt: skip
     from segs.train import build
@@ -140,6 +141,13 @@ def test_renders_outside_training_see_the_pixels_the_map_was_trained_at(tiny_cfg
     restored = build(cfg).module
     restored.on_load_checkpoint(ckpt)
     assert restored.trained_factor == 2 and restored.render_eps2d() == pytest.approx(eps2d)
+    module.trained_area = 9.0  # right after a switch from 1/4 to 1/2 size
+    module.on_save_checkpoint(ckpt)
+    restored.on_load_checkpoint(ckpt)
+    assert restored.trained_area == 9.0 and restored.render_eps2d() == pytest.approx(lagged)
+    del ckpt["segs"]["trained_area"]  # a checkpoint from before the average: the latest step's factor
+    restored.on_load_checkpoint(ckpt)
+    assert restored.trained_area is None and restored.render_eps2d() == pytest.approx(eps2d)
     del ckpt["segs"]["trained_factor"]  # a checkpoint from before the factor was kept: full size
     restored.on_load_checkpoint(ckpt)
     assert restored.render_eps2d() == pytest.approx(0.3)

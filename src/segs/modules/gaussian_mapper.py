@@ -260,9 +260,11 @@ class GaussianMapperModule(L.LightningModule):
 
     def render_eps2d(self) -> float:
         """The low-pass filter (pixels^2) of a full-size render (mapping.render_filter): with
-        "trained", 3D-GS's filter at the pixel size the map was last trained at, EPS2D * factor^2
-        (a map fitted at 1/2 size, through 0.3 px^2 of its pixels, is seen through 1.2 px^2 of
-        full-size ones); with "fixed", EPS2D."""
+        "trained", 3D-GS's filter at the pixel size the map was trained at, EPS2D * factor^2 (a map
+        fitted at 1/2 size, through 0.3 px^2 of its pixels, is seen through 1.2 px^2 of full-size
+        ones), factor^2 averaged over the latest steps (mapping.render_filter_decay) so that right
+        after a coarse-to-fine switch the map is drawn as its Gaussians were fitted; with "fixed",
+        EPS2D."""
         if self.render_filter != "trained":
             return EPS2D
         return EPS2D * (self.trained_factor**2 if self.trained_area is None else self.trained_area)
