@@ -16,7 +16,6 @@ outputs/bench/decoder_average_<dataset>.json.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 from pathlib import Path
@@ -95,14 +94,13 @@ def run(dataset: str, steps: list[int], decays: list[float]) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--dataset", choices=sorted(DATASETS), default="sample")
-    ap.add_argument("--steps", type=int, nargs="+", required=True)
+    import time_to_quality as ttq
+
+    ap = ttq.steps_parser(__doc__, DATASETS)
     ap.add_argument("--decays", type=float, nargs="+", default=[0.9, 0.97, 0.99])
-    ap.add_argument("--out", default=None)
     args = ap.parse_args()
     result = run(args.dataset, args.steps, args.decays)
-    path = _harness.write_json(args.out or _harness.ROOT / "outputs" / "bench" / f"decoder_average_{args.dataset}.json", result)
+    path = _harness.write_json(ttq.steps_record_path(args, "decoder_average"), result)
     print(f"decoder_average: {path}")
 
 

@@ -16,7 +16,6 @@ outputs/bench/render_filter_<dataset>.json.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 from pathlib import Path
@@ -57,18 +56,15 @@ def main() -> None:
     import time_to_quality as ttq
     from decoder_average import DATASETS
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--dataset", choices=sorted(DATASETS), default="sample")
-    ap.add_argument("--steps", type=int, nargs="+", required=True)
+    ap = ttq.steps_parser(__doc__, DATASETS)
     ap.add_argument("--factors", type=int, nargs="+", default=[4, 2, 1])
-    ap.add_argument("--out", default=None)
     args = ap.parse_args()
     out = Path(tempfile.mkdtemp(prefix="render_filter_"))
     scorer = Scorer(args.steps, args.factors, None)
     overrides = DATASETS[args.dataset] + ["seed=0"]
     ttq.run_scored_at_steps(overrides, max(args.steps), scorer, out)
     record = {**_harness.record(), "dataset": args.dataset, "overrides": overrides, "rows": scorer.rows}
-    path = _harness.write_json(args.out or _harness.ROOT / "outputs" / "bench" / f"render_filter_{args.dataset}.json", record)
+    path = _harness.write_json(ttq.steps_record_path(args, "render_filter"), record)
     print(f"render_filter: {path}")
 
 

@@ -185,6 +185,21 @@ def run_scored_at_steps(overrides: list[str], last_step: int, scorer: L.Callback
     _harness.fit(cfg, module, trainer)
 
 
+def steps_parser(doc: str, datasets: dict) -> argparse.ArgumentParser:
+    """The command line of a bench scored at steps of one run (run_scored_at_steps): --dataset (a
+    key of `datasets`), --steps, --out (default: steps_record_path's)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
+    ap.add_argument("--dataset", choices=sorted(datasets), default="sample")
+    ap.add_argument("--steps", type=int, nargs="+", required=True)
+    ap.add_argument("--out", default=None)
+    return ap
+
+
+def steps_record_path(args: argparse.Namespace, name: str) -> Path:
+    """--out, or outputs/bench/<name>_<dataset>.json."""
+    return Path(args.out) if args.out else ROOT / "outputs" / "bench" / f"{name}_{args.dataset}.json"
+
+
 def run_curve(overrides: list[str], budget: float, marks: list[float], out: Path, max_steps: int | None = None,
               warmup_s: float = WARMUP_S, wrap_score: Callable | None = None) -> dict:  # fmt: skip
     """One curve: train for `budget` training seconds, scoring the test views at `marks`.
